@@ -1,0 +1,80 @@
+"""Fit time of every estimator against the floor of unavoidable dense linear algebra.
+
+Synthetic data: K trajectories, d features, H steps, two actions (the size of the issue's
+speed target and of the authors' timing figure). The floor is what any implementation of
+the paper must do: the H Gram matrices (with their Cholesky factors) and H ridge solves,
+timed in this same run. Each timing is the median of ``--repeats`` fits after one warm-up.
+
+    python benchmarks/bench_fit.py                 # K=10000, d=30, H=20
+    python benchmarks/bench_fit.py --K 2000 --d 60
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+import r2pvi
+from r2pvi.duals.operators import RidgeExpectation, cholesky_gram
+
+
+def make_dataset(K, H, d, A=2, seed=0):
+    rng = np.random.default_rng(seed)
+    phi = rng.dirichlet(np.ones(d), size=(K, H))
+    next_phi = rng.dirichlet(np.ones(d), size=(K, H, A))
+    theta = rng.uniform(0, 1, size=(H, d))
+    rewards = np.einsum("khd,hd->kh", phi, theta)
+    return r2pvi.OfflineDataset.from_features(phi, rewards, next_phi), theta
+
+
+def floor_fit(ds, gamma=1.0):
+    """The H Gram matrices (Cholesky-factored) and the H ridge solves."""
+    for h in range(ds.horizon):
+        phi, rewards, _, _ = ds.step(h)
+        RidgeExpectation(phi, cholesky_gram(phi, gamma))(rewards)
+
+
+def median_time(fn, repeats):
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def estimators(theta):
+    kw = {"reward_weights": theta, "r_max": 1.0}
+    return {
+        "PEVI": r2pvi.PEVI(**kw),
+        "R2PVI-TV": r2pvi.R2PVI("tv", 1.0, **kw),
+        "R2PVI-KL": r2pvi.R2PVI("kl", 1.0, **kw),
+        "R2PVI-chi2": r2pvi.R2PVI("chi2", 1.0, **kw),
+    }
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--K", type=int, default=10_000)
+    ap.add_argument("--d", type=int, default=30)
+    ap.add_argument("--H", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--only", nargs="*", help="estimator names to time")
+    args = ap.parse_args(argv)
+    ds, theta = make_dataset(args.K, args.H, args.d)
+    floor = median_time(lambda: floor_fit(ds), args.repeats)
+    print(f"K={args.K} d={args.d} H={args.H} A=2; median of {args.repeats} fits")
+    print(f"{'floor (Gram + Cholesky + ridge solve) x H':<44s} {floor * 1e3:8.1f} ms   1.00x")
+    for name, est in estimators(theta).items():
+        if args.only and name not in args.only:
+            continue
+        t = median_time(lambda est=est: est.fit(ds), args.repeats)
+        print(f"{name:<44s} {t * 1e3:8.1f} ms {t / floor:6.2f}x")
+
+
+if __name__ == "__main__":
+    main()

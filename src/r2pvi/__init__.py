@@ -1,0 +1,29 @@
+"""r2pvi: robust offline RL with linearly structured f-divergence regularization.
+
+Implements R2PVI (ICML 2025) with TV, KL, chi^2 and general f-divergences, its baselines,
+and exact evaluation, on one backward-induction engine.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from .algorithms import PEVI, R2PVI, LinearEstimator
+from .algorithms import load_estimator as load
+from .data import OfflineDataset, SimplexFeatureWarning
+from .duals import FDivergence, cressie_read
+
+try:
+    __version__ = version("r2pvi")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0.0.0+unknown"
+
+__all__ = [
+    "OfflineDataset",
+    "SimplexFeatureWarning",
+    "FDivergence",
+    "cressie_read",
+    "LinearEstimator",
+    "PEVI",
+    "R2PVI",
+    "load",
+    "__version__",
+]

@@ -1,0 +1,7 @@
+"""``python -m r2pvi`` is the ``r2pvi`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

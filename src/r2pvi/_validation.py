@@ -1,0 +1,58 @@
+"""Argument checks shared by every layer: each raises a clear error naming the argument."""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+
+
+def as_float_array(x, name: str, ndim: int | None = None, allow_nan: bool = False) -> np.ndarray:
+    """Return ``x`` as a float64 array (a copy), checking dtype, dimension and finiteness."""
+    if isinstance(x, np.ndarray) and x.dtype == object or isinstance(x, str):
+        raise TypeError(f"{name} must be a numeric array, got {type(x).__name__}")
+    try:
+        arr = np.array(x, dtype=np.float64, copy=True)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be a numeric array; could not convert it: {exc}") from None
+    if np.iscomplexobj(np.asarray(x)):
+        raise TypeError(f"{name} must be real, got a complex array")
+    if ndim is not None and arr.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
+    bad = np.isinf(arr) if allow_nan else ~np.isfinite(arr)
+    if bad.any():
+        what = "infinite" if allow_nan else "NaN or infinite"
+        raise ValueError(f"{name} contains {int(bad.sum())} {what} entries; clean the data first")
+    return arr
+
+
+def check_scalar(
+    value,
+    name: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_inclusive: bool = True,
+    integer: bool = False,
+) -> float | int:
+    """Check a real (or integer) scalar parameter against bounds and return it."""
+    kind = numbers.Integral if integer else numbers.Real
+    if isinstance(value, bool) or not isinstance(value, kind):
+        what = "an integer" if integer else "a real number"
+        raise TypeError(f"{name} must be {what}, got {value!r} ({type(value).__name__})")
+    if not np.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    if low is not None:
+        if (value < low) if low_inclusive else (value <= low):
+            sign = ">=" if low_inclusive else ">"
+            raise ValueError(f"{name} must be {sign} {low}, got {value!r}")
+    if high is not None and value > high:
+        raise ValueError(f"{name} must be <= {high}, got {value!r}")
+    return int(value) if integer else float(value)
+
+
+def check_choice(value, name: str, choices) -> str:
+    """Check that ``value`` is one of the allowed strings."""
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"{name} must be one of {sorted(choices)}, got {value!r}")
+    return value

@@ -1,0 +1,18 @@
+"""Estimators: thin objects that tell the engine how to turn next-step values into weights."""
+
+from .base import ESTIMATOR_REGISTRY, LinearEstimator, load_estimator
+from .pevi import PEVI, RidgeRule
+from .r2pvi import R2PVI, Chi2Rule, FDivergenceRule, KLRule, TVRule
+
+__all__ = [
+    "ESTIMATOR_REGISTRY",
+    "LinearEstimator",
+    "load_estimator",
+    "PEVI",
+    "R2PVI",
+    "RidgeRule",
+    "TVRule",
+    "KLRule",
+    "Chi2Rule",
+    "FDivergenceRule",
+]

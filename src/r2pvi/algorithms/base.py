@@ -1,0 +1,285 @@
+"""What every estimator shares: parameters, validation, fitting through the engine, acting, I/O.
+
+The conventions are scikit-learn's: ``__init__`` only stores keyword parameters, ``fit``
+validates them and returns ``self``, fitted attributes end with ``_``, and
+``get_params``/``set_params`` expose the parameters.
+"""
+
+from __future__ import annotations
+
+import inspect
+import numbers
+
+import numpy as np
+
+from .._io import load_npz, save_npz
+from .._validation import as_float_array, check_choice, check_scalar
+from ..data import OfflineDataset
+from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
+
+__all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
+
+MODEL_FORMAT_VERSION = 1
+ESTIMATOR_REGISTRY: dict[str, type] = {}
+
+_FITTED = ("weights_", "reward_weights_", "gram_cholesky_", "gram_inv_diag_")
+
+
+class LinearEstimator:
+    """Base class of the pessimistic value-iteration estimators (PEVI, R2PVI, DRPVI, ...).
+
+    Subclasses declare their parameters in ``__init__`` and implement :meth:`_make_rule`
+    (the engine's :class:`~r2pvi.engine.StepRule`) and, when they have parameters of their
+    own, :meth:`_validate_extra`.
+    """
+
+    _penalty_choices = PENALTIES
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        ESTIMATOR_REGISTRY[cls.__name__] = cls
+
+    # ------------------------------------------------------------------ parameters
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        return [p.name for p in sig.parameters.values() if p.name != "self"]
+
+    def get_params(self, deep: bool = True) -> dict:
+        """The estimator's parameters as a dict (scikit-learn convention)."""
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params):
+        """Set parameters by name and return ``self`` (validated at the next ``fit``)."""
+        valid = self._param_names()
+        for name, value in params.items():
+            if name not in valid:
+                raise ValueError(
+                    f"invalid parameter {name!r} for {type(self).__name__}; valid: {valid}"
+                )
+            setattr(self, name, value)
+        return self
+
+    def __repr__(self) -> str:
+        defaults = {
+            p.name: p.default
+            for p in inspect.signature(type(self).__init__).parameters.values()
+            if p.name != "self"
+        }
+        shown = []
+        for name, value in self.get_params().items():
+            default = defaults.get(name, inspect.Parameter.empty)
+            same = value is default or (
+                not isinstance(value, np.ndarray)
+                and not isinstance(default, np.ndarray)
+                and type(value) is type(default)
+                and value == default
+            )
+            if not same:
+                shown.append(f"{name}={value!r}")
+        return f"{type(self).__name__}({', '.join(shown)})"
+
+    # ------------------------------------------------------------------ validation
+    def _validate_common(self, dataset: OfflineDataset) -> dict:
+        p = {
+            "beta": check_scalar(self.beta, "beta", low=0.0),
+            "gamma": check_scalar(self.gamma, "gamma", low=0.0, low_inclusive=False),
+            "r_max": check_scalar(self.r_max, "r_max", low=0.0, low_inclusive=False),
+            "penalty": check_choice(
+                getattr(self, "penalty", "elliptical"), "penalty", self._penalty_choices
+            ),
+        }
+        if self.reward_weights is None:
+            p["reward_weights"] = None
+        else:
+            rw = as_float_array(self.reward_weights, "reward_weights", ndim=2)
+            expected = (dataset.horizon, dataset.n_features)
+            if rw.shape != expected:
+                raise ValueError(
+                    f"reward_weights must have shape (H, d) = {expected} to match the dataset, "
+                    f"got {rw.shape}; pass None to estimate them from the rewards"
+                )
+            p["reward_weights"] = rw
+        return p
+
+    def _validate_extra(self, dataset: OfflineDataset) -> dict:
+        return {}
+
+    def _make_rule(self, params: dict) -> StepRule:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ fitting
+    def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None):
+        return backward_induction(
+            dataset,
+            self._make_rule(params),
+            beta=params["beta"],
+            gamma=params["gamma"],
+            penalty=params["penalty"],
+            r_max=params["r_max"],
+            reward_weights=params["reward_weights"],
+            sample_weights=sample_weights,
+        )
+
+    def _fit_model(self, dataset: OfflineDataset, params: dict) -> FittedModel:
+        """The fitted model; variance-aware subclasses override this with two passes."""
+        return self._run_engine(dataset, params)
+
+    def fit(self, dataset: OfflineDataset):
+        """Learn the weights of every step from ``dataset``; returns ``self``."""
+        if not isinstance(dataset, OfflineDataset):
+            raise TypeError(
+                f"fit expects an r2pvi.OfflineDataset, got {type(dataset).__name__}; build one "
+                "with OfflineDataset.from_features(...)"
+            )
+        params = self._validate_common(dataset)
+        params.update(self._validate_extra(dataset))
+        model = self._fit_model(dataset, params)
+        self._set_fitted(model, params, dataset.n_actions)
+        return self
+
+    def _set_fitted(self, model: FittedModel, params: dict, n_actions: int):
+        self.weights_ = model.weights
+        self.reward_weights_ = model.reward_weights
+        self.gram_cholesky_ = model.gram_cholesky
+        self.gram_inv_diag_ = model.gram_inv_diag
+        self.horizon_, self.n_features_in_ = model.weights.shape
+        self.n_actions_ = n_actions
+        self._fit_params = {k: params[k] for k in ("beta", "penalty", "r_max")}
+
+    def _check_fitted(self):
+        if not hasattr(self, "weights_"):
+            raise RuntimeError(
+                f"this {type(self).__name__} is not fitted yet; call fit(dataset) first"
+            )
+
+    def _model(self) -> FittedModel:
+        return FittedModel(
+            self.weights_, self.reward_weights_, self.gram_cholesky_, self.gram_inv_diag_
+        )
+
+    # ------------------------------------------------------------------ acting
+    def q_values(self, phi_all, h: int, known_values=None) -> np.ndarray:
+        """``Q_h`` of every action: features ``phi_all (n, A, d)`` -> ``(n, A)``.
+
+        ``h`` is the 0-based step. ``known_values (n, A)`` overrides actions whose value is
+        known (NaN: use the learned Q), as in the dataset.
+        """
+        self._check_fitted()
+        phi_all = as_float_array(phi_all, "phi_all")
+        if phi_all.ndim == 2:
+            raise ValueError(
+                "phi_all must have shape (n, A, d); for one state pass phi_all[None]"
+            )
+        if phi_all.ndim != 3 or phi_all.shape[-1] != self.n_features_in_:
+            raise ValueError(
+                f"phi_all must have shape (n, A, d={self.n_features_in_}), got {phi_all.shape}"
+            )
+        if isinstance(h, bool) or not isinstance(h, numbers.Integral):
+            raise TypeError(f"h must be an integer step in [0, {self.horizon_}), got {h!r}")
+        if not 0 <= h < self.horizon_:
+            raise ValueError(f"h must be a 0-based step in [0, {self.horizon_}), got {h}")
+        if known_values is not None:
+            known_values = as_float_array(known_values, "known_values", allow_nan=True)
+            if known_values.shape != phi_all.shape[:2]:
+                raise ValueError(
+                    f"known_values must have shape (n, A) = {phi_all.shape[:2]}, "
+                    f"got {known_values.shape}"
+                )
+        fp = self._fit_params
+        return q_values_from_model(
+            self._model(), phi_all, int(h), penalty=fp["penalty"], beta=fp["beta"],
+            r_max=fp["r_max"], known_values=known_values,
+        )
+
+    def act(self, phi_all, h: int, known_values=None) -> np.ndarray:
+        """Greedy action indices ``(n,)`` at step ``h`` (ties go to the lowest index)."""
+        return np.argmax(self.q_values(phi_all, h, known_values), axis=1)
+
+    def values(self, phi_all, h: int, known_values=None) -> np.ndarray:
+        """Greedy values ``V_h = max_a Q_h`` at step ``h``, ``(n,)``."""
+        return np.max(self.q_values(phi_all, h, known_values), axis=1)
+
+    # ------------------------------------------------------------------ I/O
+    def _params_to_json(self) -> tuple[dict, dict]:
+        meta, arrays = {}, {}
+        for name, value in self.get_params().items():
+            if isinstance(value, np.ndarray) or (
+                isinstance(value, list | tuple) and np.ndim(value) > 0
+            ):
+                arrays["param_" + name] = np.asarray(value, dtype=float)
+                meta[name] = {"__array__": "param_" + name}
+            else:
+                meta[name] = _jsonable(name, value)
+        return meta, arrays
+
+    def save(self, path):
+        """Save the fitted estimator to a versioned ``.npz`` (arrays + JSON header, no pickle).
+
+        Returns the path written. Load it back with :meth:`load` or :func:`r2pvi.load`.
+        """
+        self._check_fitted()
+        params, arrays = self._params_to_json()
+        for name in _FITTED:
+            arrays[name] = getattr(self, name)
+        meta = {
+            "estimator": type(self).__name__,
+            "params": params,
+            "fit_params": self._fit_params,
+            "n_actions": self.n_actions_,
+        }
+        return save_npz(path, "estimator", MODEL_FORMAT_VERSION, arrays, meta)
+
+    @classmethod
+    def load(cls, path):
+        """Load an estimator saved by :meth:`save`; it is fitted and ready to act."""
+        est = load_estimator(path)
+        if cls is not LinearEstimator and not isinstance(est, cls):
+            raise TypeError(f"{path} holds a {type(est).__name__}, not a {cls.__name__}")
+        return est
+
+
+def _jsonable(name, value):
+    from ..duals.fdivergence import FDivergence, get_divergence
+
+    if isinstance(value, FDivergence):
+        spec = value.params
+        try:
+            ok = bool(spec) and get_divergence(spec) == value
+        except (TypeError, ValueError, KeyError):
+            ok = False
+        if not ok:
+            raise TypeError(
+                f"cannot save parameter {name}={value!r}: a custom FDivergence has code, which "
+                "is never pickled; use a built-in divergence or save the weights_ yourself"
+            )
+        return {"__divergence__": spec}
+    if value is None or isinstance(value, bool | str):
+        return value
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        return float(value)
+    raise TypeError(f"cannot save parameter {name}={value!r} of type {type(value).__name__}")
+
+
+def load_estimator(path):
+    """Load any estimator saved with ``save`` (dispatches on the class recorded in the file)."""
+    from ..duals.fdivergence import get_divergence
+
+    arrays, header = load_npz(path, "estimator", MODEL_FORMAT_VERSION)
+    name = header.get("estimator")
+    if name not in ESTIMATOR_REGISTRY:
+        raise ValueError(f"{path} holds an unknown estimator {name!r}")
+    cls = ESTIMATOR_REGISTRY[name]
+    params = {}
+    for key, value in header["params"].items():
+        if isinstance(value, dict) and "__array__" in value:
+            value = arrays[value["__array__"]]
+        elif isinstance(value, dict) and "__divergence__" in value:
+            value = get_divergence(value["__divergence__"])
+        params[key] = value
+    est = cls(**params)
+    model = FittedModel(*(arrays[n] for n in _FITTED))
+    est._set_fitted(model, header["fit_params"], int(header["n_actions"]))
+    return est

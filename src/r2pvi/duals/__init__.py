@@ -1,0 +1,40 @@
+"""The duals of the paper, written once against a linear expectation operator."""
+
+from .fdivergence import (
+    BUILTIN_DIVERGENCES,
+    CHI2,
+    HELLINGER,
+    KL,
+    TV,
+    FDivergence,
+    cressie_read,
+    get_divergence,
+)
+from .operators import (
+    ExpectationOperator,
+    FactorExpectation,
+    RidgeExpectation,
+    TruncationCumulants,
+    cholesky_gram,
+)
+from .regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
+
+__all__ = [
+    "BUILTIN_DIVERGENCES",
+    "CHI2",
+    "HELLINGER",
+    "KL",
+    "TV",
+    "FDivergence",
+    "cressie_read",
+    "get_divergence",
+    "ExpectationOperator",
+    "FactorExpectation",
+    "RidgeExpectation",
+    "TruncationCumulants",
+    "cholesky_gram",
+    "chi2_regularized",
+    "f_regularized",
+    "kl_regularized",
+    "tv_regularized",
+]

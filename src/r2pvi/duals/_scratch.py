@@ -1,0 +1,34 @@
+"""Reusable work buffers for the hot loops of the piecewise and general duals.
+
+A fresh large NumPy array is mapped from the operating system page by page: measured on
+the 2-core CI machine, a (30 x 10,000) float64 temporary costs ~0.5 ms of page faults, more
+than the arithmetic done on it. The duals therefore draw their (d, n) temporaries from a
+thread-local pool that the engine empties when a fit ends.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+_local = threading.local()
+
+
+def buffer(key: str, shape: tuple[int, ...]) -> np.ndarray:
+    """An uninitialized float64 array of ``shape``, reused across calls with the same key.
+
+    The content is valid until the next call with the same key in the same thread.
+    """
+    pool = getattr(_local, "pool", None)
+    if pool is None:
+        pool = _local.pool = {}
+    buf = pool.get(key)
+    if buf is None or buf.shape != shape:
+        buf = pool[key] = np.empty(shape)
+    return buf
+
+
+def release() -> None:
+    """Drop every buffer of this thread (called at the end of a fit)."""
+    _local.pool = {}

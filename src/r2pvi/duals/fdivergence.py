@@ -1,0 +1,233 @@
+"""f-divergences ``D_f(mu || mu0) = E_mu0[f(dmu/dmu0)]`` with their convex conjugates.
+
+An :class:`FDivergence` carries ``f``, its convex conjugate ``f*(s) = sup_{t>=0} s t - f(t)``
+(``+inf`` outside its domain), the right end of that domain and the subdifferential of ``f``
+at 1. The last two bracket the dual variable of the general dual (paper, Algorithm 1):
+
+    inf_mu E_mu V + lam D_f(mu || mu0) = sup_alpha  alpha - lam E_mu0[f*((alpha - V)/lam)].
+
+Conventions (the paper's): TV ``f(t) = |t-1|/2``, KL ``f(t) = t log t``,
+chi^2 ``f(t) = (t-1)^2``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import xlogy
+
+__all__ = [
+    "FDivergence",
+    "TV",
+    "KL",
+    "CHI2",
+    "HELLINGER",
+    "cressie_read",
+    "get_divergence",
+    "BUILTIN_DIVERGENCES",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class FDivergence:
+    """An f-divergence given by ``f`` and its convex conjugate.
+
+    Parameters
+    ----------
+    name : str
+        Short name; built-in names are "tv", "kl", "chi2", "hellinger", "cressie_read".
+    f : callable
+        Vectorized ``f(t)`` for ``t >= 0``, convex, ``f(1) = 0``.
+    conjugate : callable
+        Vectorized ``f*(s)``; ``+inf`` where ``s`` is outside the domain.
+    domain_max : float
+        Right end of the domain of ``f*`` (``inf`` if unbounded). It equals
+        ``lim_{t->inf} f(t)/t``: when finite, mass can move to states outside the
+        nominal support, and the dual depends on the minimum value over all states.
+    domain_open : bool
+        Whether ``f*`` is infinite at ``domain_max`` itself.
+    slope_at_one : (float, float)
+        The subdifferential ``[lo, hi]`` of ``f`` at 1; the optimal dual variable lies in
+        ``[V_min + lam*lo, V_max + lam*hi]``.
+    params : dict
+        Parameters that rebuild the divergence with :func:`get_divergence` (for saving).
+
+    Examples
+    --------
+    >>> from r2pvi import FDivergence
+    >>> import numpy as np
+    >>> # chi^2 written by hand, with the paper's f(t) = (t - 1)^2
+    >>> chi2 = FDivergence("my_chi2", lambda t: (t - 1.0) ** 2,
+    ...                    lambda s: np.where(s >= -2, s + s * s / 4, -1.0),
+    ...                    domain_max=np.inf, slope_at_one=(0.0, 0.0))
+    >>> float(chi2.divergence([0.5, 0.5], [0.25, 0.75]))
+    0.3333333333333333
+    """
+
+    name: str
+    f: Callable = field(repr=False)
+    conjugate: Callable = field(repr=False)
+    domain_max: float = np.inf
+    domain_open: bool = False
+    slope_at_one: tuple[float, float] = (0.0, 0.0)
+    params: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise TypeError("name must be a non-empty string")
+        if not callable(self.f) or not callable(self.conjugate):
+            raise TypeError("f and conjugate must be callables (vectorized over arrays)")
+        lo, hi = self.slope_at_one
+        if not lo <= hi:
+            raise ValueError(f"slope_at_one must be an interval lo <= hi, got {self.slope_at_one}")
+        if not hi <= self.domain_max:
+            raise ValueError("slope_at_one must lie in the domain of the conjugate")
+
+    def __eq__(self, other):
+        if not isinstance(other, FDivergence):
+            return NotImplemented
+        if self.params and other.params:
+            return self.params == other.params
+        return self is other
+
+    def __hash__(self):
+        return hash(self.name)
+
+    def divergence(self, mu, mu0) -> float:
+        """``D_f(mu || mu0)`` for finite distributions (``+inf`` when not absolutely continuous,
+        unless ``f`` grows linearly, in which case mass off the support costs ``domain_max``)."""
+        mu = np.asarray(mu, dtype=float)
+        mu0 = np.asarray(mu0, dtype=float)
+        on = mu0 > 0
+        value = float(np.sum(mu0[on] * self.f(mu[on] / mu0[on])))
+        off = float(mu[~on].sum())
+        if off > 0:
+            value = value + off * self.domain_max if np.isfinite(self.domain_max) else np.inf
+        return value
+
+
+def _tv_conjugate(s):
+    s = np.asarray(s, dtype=float)
+    return np.where(s <= 0.5, np.maximum(s, -0.5), np.inf)
+
+
+def _kl_conjugate(s):
+    return np.exp(np.asarray(s, dtype=float) - 1.0)
+
+
+def _chi2_conjugate(s):
+    s = np.asarray(s, dtype=float)
+    return np.where(s >= -2.0, s + 0.25 * s * s, -1.0)
+
+
+def _hellinger_conjugate(s):
+    s = np.asarray(s, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(s < 1.0, s / (1.0 - s), np.inf)
+
+
+TV = FDivergence(
+    "tv",
+    lambda t: 0.5 * np.abs(np.asarray(t, dtype=float) - 1.0),
+    _tv_conjugate,
+    domain_max=0.5,
+    slope_at_one=(-0.5, 0.5),
+    params={"name": "tv"},
+)
+KL = FDivergence(
+    "kl",
+    lambda t: xlogy(t, t),
+    _kl_conjugate,
+    slope_at_one=(1.0, 1.0),
+    params={"name": "kl"},
+)
+CHI2 = FDivergence(
+    "chi2",
+    lambda t: (np.asarray(t, dtype=float) - 1.0) ** 2,
+    _chi2_conjugate,
+    slope_at_one=(0.0, 0.0),
+    params={"name": "chi2"},
+)
+HELLINGER = FDivergence(
+    "hellinger",
+    lambda t: (np.sqrt(np.asarray(t, dtype=float)) - 1.0) ** 2,
+    _hellinger_conjugate,
+    domain_max=1.0,
+    domain_open=True,
+    slope_at_one=(0.0, 0.0),
+    params={"name": "hellinger"},
+)
+
+
+def cressie_read(k: float) -> FDivergence:
+    """The Cressie-Read family ``f_k(t) = (t^k - k t + k - 1) / (k (k - 1))``, k not in {0, 1}.
+
+    ``k = 2`` is half the chi^2 divergence, ``k = 1/2`` twice the squared Hellinger distance;
+    ``k -> 1`` tends to KL. The conjugate is
+    ``f_k*(s) = ((1 + (k-1) s)_+^{k/(k-1)} - 1) / k`` (domain ``s < 1/(1-k)`` when ``k < 1``).
+
+    Examples
+    --------
+    >>> from r2pvi.duals import cressie_read
+    >>> d = cressie_read(2.0)
+    >>> float(d.f(3.0)), float(d.conjugate(1.0))
+    (2.0, 1.5)
+    """
+    if isinstance(k, bool) or not isinstance(k, int | float | np.floating | np.integer):
+        raise TypeError(f"k must be a real number, got {k!r}")
+    k = float(k)
+    if not np.isfinite(k) or k in (0.0, 1.0):
+        raise ValueError(f"k must be finite and not 0 or 1 (use 'kl' for k -> 1), got {k}")
+
+    def f(t):
+        t = np.asarray(t, dtype=float)
+        with np.errstate(divide="ignore"):
+            return (np.power(t, k) - k * t + k - 1.0) / (k * (k - 1.0))
+
+    def conjugate(s):
+        s = np.asarray(s, dtype=float)
+        base = 1.0 + (k - 1.0) * s
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            if k > 1.0:
+                return (np.power(np.maximum(base, 0.0), k / (k - 1.0)) - 1.0) / k
+            return np.where(base > 0, (np.power(np.where(base > 0, base, 1.0), k / (k - 1.0))
+                                       - 1.0) / k, np.inf)
+
+    domain_max = np.inf if k > 1.0 else 1.0 / (1.0 - k)
+    return FDivergence(
+        f"cressie_read({k:g})",
+        f,
+        conjugate,
+        domain_max=domain_max,
+        domain_open=k < 1.0,
+        slope_at_one=(0.0, 0.0),
+        params={"name": "cressie_read", "k": k},
+    )
+
+
+BUILTIN_DIVERGENCES = {"tv": TV, "kl": KL, "chi2": CHI2, "hellinger": HELLINGER}
+
+
+def get_divergence(spec) -> FDivergence:
+    """Resolve a divergence name, parameter dict (as in ``FDivergence.params``) or object."""
+    if isinstance(spec, FDivergence):
+        return spec
+    if isinstance(spec, str):
+        key = spec.lower().replace("-", "").replace("_", "").replace("^", "")
+        aliases = {"tv": "tv", "kl": "kl", "chi2": "chi2", "chisquare": "chi2",
+                   "hellinger": "hellinger", "squaredhellinger": "hellinger"}
+        if key in aliases:
+            return BUILTIN_DIVERGENCES[aliases[key]]
+        raise ValueError(
+            f"unknown divergence {spec!r}: use 'tv', 'kl', 'chi2', 'hellinger', "
+            "cressie_read(k) or an FDivergence"
+        )
+    if isinstance(spec, dict) and spec.get("name") == "cressie_read":
+        return cressie_read(spec["k"])
+    if isinstance(spec, dict) and spec.get("name") in BUILTIN_DIVERGENCES:
+        return BUILTIN_DIVERGENCES[spec["name"]]
+    raise TypeError(
+        f"divergence must be a name ('tv', 'kl', 'chi2', ...) or an FDivergence, got {spec!r}"
+    )
