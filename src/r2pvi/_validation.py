@@ -9,14 +9,13 @@ import numpy as np
 
 def as_float_array(x, name: str, ndim: int | None = None, allow_nan: bool = False) -> np.ndarray:
     """Return ``x`` as a float64 array (a copy), checking dtype, dimension and finiteness."""
-    if isinstance(x, np.ndarray) and x.dtype == object or isinstance(x, str):
-        raise TypeError(f"{name} must be a numeric array, got {type(x).__name__}")
-    try:
-        arr = np.array(x, dtype=np.float64, copy=True)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name} must be a numeric array; could not convert it: {exc}") from None
-    if np.iscomplexobj(np.asarray(x)):
-        raise TypeError(f"{name} must be real, got a complex array")
+    raw = np.asarray(x) if not isinstance(x, str) else None
+    if raw is None or raw.dtype.kind not in "biuf":
+        kind = type(x).__name__ if raw is None else f"an array of dtype {raw.dtype}"
+        if raw is not None and raw.dtype.kind == "c":
+            raise TypeError(f"{name} must be real, got a complex array")
+        raise TypeError(f"{name} must be a numeric (float) array, got {kind}")
+    arr = np.array(raw, dtype=np.float64, copy=True)
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
     bad = np.isinf(arr) if allow_nan else ~np.isfinite(arr)
