@@ -258,3 +258,38 @@ def test_duals_are_vectorized_over_factors_and_do_not_mutate_inputs():
         rows = [fn(FactorExpectation(mu[i : i + 1]), v, 0.7)[0] for i in range(5)]
         np.testing.assert_allclose(full, rows, atol=1e-12)
     np.testing.assert_array_equal(v, v0)
+
+
+@settings(max_examples=40)
+@given(
+    st.integers(0, 2**31 - 1),
+    st.integers(1, 2500),
+    st.integers(1, 5),
+    st.sampled_from([0.01, 0.1, 1.0, 10.0]),
+    st.sampled_from(["paper", "none", "tight"]),
+    st.booleans(),
+)
+def test_chi2_blockwise_branch_and_bound_equals_dense(seed, n, d, lam, clips, weighted):
+    rng = np.random.default_rng(seed)
+    phi = rng.dirichlet(np.ones(d) * rng.choice([0.2, 1.0, 5.0]), size=n)
+    if seed % 4 == 0:
+        phi = phi - 0.1  # features off the simplex, negative entries
+    w = rng.uniform(0.2, 1.0, n) if weighted else None
+    E = RidgeExpectation(phi, cholesky_gram(phi, float(rng.choice([0.01, 1.0])), w), w)
+    v = rng.uniform(-1.0 if seed % 5 == 0 else 0.0, 3.0, n)
+    if seed % 3 == 0:
+        v = np.round(v, 1)  # many ties
+    bounds = {"paper": ((0, 3), (0, 9)), "none": (None, None), "tight": ((0, 1), (0, 2))}[clips]
+    dense = chi2_regularized(E, v, lam, *bounds, method="dense")
+    np.testing.assert_allclose(chi2_regularized(E, v, lam, *bounds, method="blockwise"), dense,
+                               atol=1e-11)
+    mu = rng.dirichlet(np.ones(n), size=d)
+    F = FactorExpectation(mu)
+    np.testing.assert_allclose(chi2_regularized(F, v, lam, *bounds, method="blockwise"),
+                               chi2_regularized(F, v, lam, *bounds, method="dense"), atol=1e-11)
+
+
+def test_chi2_method_is_checked():
+    E = FactorExpectation(np.array([[1.0]]))
+    with pytest.raises(ValueError, match="method must be"):
+        chi2_regularized(E, np.array([1.0]), 1.0, method="fast")

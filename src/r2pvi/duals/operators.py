@@ -22,6 +22,8 @@ __all__ = [
     "FactorExpectation",
     "cholesky_gram",
     "cholesky_solve",
+    "prefix_sums",
+    "BLOCK",
 ]
 
 # NumPy's LAPACK only: NumPy and SciPy wheels bundle separate OpenBLAS builds whose thread
@@ -71,6 +73,45 @@ class ExpectationOperator:
         out[:, src < 0] = 0.0
         return out
 
+    def sorted_weights(self, v: np.ndarray, breakpoints_extra=(), key="sorted"):
+        """Sort the breakpoints once: ``(alphas (p,), weights (d, p), m)``.
+
+        ``alphas`` are ``v`` plus ``breakpoints_extra`` in increasing order, padded to a
+        multiple of 16 by repeating the largest; ``weights[:, k]`` is the weight column of
+        the point at ``alphas[k]`` (zero for extra breakpoints and padding); the first ``m``
+        entries are the real breakpoints. ``weights`` is a reused work buffer.
+        """
+        v = np.asarray(v, dtype=float)
+        n = v.size
+        if len(breakpoints_extra):
+            v = np.concatenate([v, np.asarray(breakpoints_extra, dtype=float)])
+        order = np.argsort(v)
+        m = order.size
+        padded = -(-m // BLOCK) * BLOCK
+        alphas = np.empty(padded)
+        alphas[:m] = v[order]
+        alphas[m:] = alphas[m - 1]
+        src = np.full(padded, -1)
+        src[:m] = np.where(order < n, order, -1)
+        weights = self.weight_columns(src, out=buffer(key, (self.n_dims, padded)))
+        return alphas, weights, m
+
+    def sorted_blocks(self, v: np.ndarray, breakpoints_extra=()) -> SortedBlocks:
+        """Block sums of the sorted weight columns, for branch and bound over breakpoints.
+
+        Returns :class:`SortedBlocks` with ``alphas (p,)`` as in :meth:`sorted_weights` and,
+        for every block of 16 consecutive sorted points, the sums of ``M``, ``M v``, ``M v^2``
+        and an upper bound on the sum of ``|M|`` (each ``(d, p/16)``), plus a function giving
+        the exact weight columns of chosen blocks.
+        """
+        alphas, weights, m = self.sorted_weights(v, breakpoints_extra)
+        d, p = weights.shape
+        w3 = weights.reshape(d, p // BLOCK, BLOCK)
+        powers = _block_powers(alphas)  # (nb, 3, 16): 1, alpha, alpha^2
+        sums = np.einsum("dbk,bjk->jdb", w3, powers)
+        sabs = np.abs(w3).sum(axis=2)
+        return SortedBlocks(alphas, m, sums[0], sums[1], sums[2], sabs, lambda blk: w3[:, blk])
+
     def truncation_cumulants(self, v: np.ndarray, breakpoints_extra=()) -> TruncationCumulants:
         """Expectations of the truncated values ``[V]_alpha = min(V, alpha)`` for every alpha.
 
@@ -81,31 +122,24 @@ class ExpectationOperator:
         weight) that must separate segments. The arrays live in reused work buffers: they are
         valid until the next call in the same thread.
         """
-        v = np.asarray(v, dtype=float)
-        n = v.size
-        if len(breakpoints_extra):
-            v = np.concatenate([v, np.asarray(breakpoints_extra, dtype=float)])
-        order = np.argsort(v)
-        m = order.size
-        padded = -(-m // _BLOCK) * _BLOCK
-        vs = np.zeros(padded)
-        vs[:m] = v[order]
-        src = np.full(padded, -1)
-        src[:m] = np.where(order < n, order, -1)
         d = self.n_dims
+        v = np.asarray(v, dtype=float)
+        m_all = v.size + len(breakpoints_extra)
+        padded = -(-m_all // BLOCK) * BLOCK
         # M, M v and M v^2 (columns in sorted order) share one buffer, so that one blocked
         # prefix sum (a GEMM, about twice as fast as np.cumsum here) serves all three.
         stacked = buffer("cumulants.stacked", (3, d, padded))
-        self.weight_columns(src, out=stacked[0])
-        np.multiply(stacked[0], vs, out=stacked[1])
-        np.multiply(stacked[1], vs, out=stacked[2])
+        alphas, weights, m = self.sorted_weights(v, breakpoints_extra)
+        stacked[0] = weights
+        np.multiply(stacked[0], alphas, out=stacked[1])
+        np.multiply(stacked[1], alphas, out=stacked[2])
         sums = prefix_sums(stacked.reshape(3 * d, padded)).reshape(3, d, padded)
         head, a, c = sums[0, :, :m], sums[1, :, :m], sums[2, :, :m]
         b = np.subtract(head[:, -1:], head, out=head)
-        return TruncationCumulants(vs[:m], a, b, c)
+        return TruncationCumulants(alphas[:m], a, b, c)
 
 
-_BLOCK = 16
+BLOCK = 16
 
 
 def prefix_sums(x: np.ndarray) -> np.ndarray:
@@ -114,16 +148,37 @@ def prefix_sums(x: np.ndarray) -> np.ndarray:
     (NumPy's ``cumsum`` is sequential; this is about twice as fast for d x K weight rows.)
     """
     r, n = x.shape
-    blocks = x.reshape(r, n // _BLOCK, _BLOCK)
+    blocks = x.reshape(r, n // BLOCK, BLOCK)
     inner = np.matmul(
-        x.reshape(-1, _BLOCK), _UPPER_ONES, out=buffer("prefix.inner", (r * n // _BLOCK, _BLOCK))
+        x.reshape(-1, BLOCK), _UPPER_ONES, out=buffer("prefix.inner", (r * n // BLOCK, BLOCK))
     ).reshape(blocks.shape)
     offsets = np.cumsum(inner[:, :, -1], axis=1)
     inner[:, 1:, :] += offsets[:, :-1, None]
     return inner.reshape(r, n)
 
 
-_UPPER_ONES = np.triu(np.ones((_BLOCK, _BLOCK)))
+_UPPER_ONES = np.triu(np.ones((BLOCK, BLOCK)))
+
+
+def _block_powers(alphas: np.ndarray) -> np.ndarray:
+    """``(nb, 3, 16)``: 1, alpha and alpha^2 of every sorted point, by block."""
+    a3 = alphas.reshape(-1, BLOCK)
+    return np.stack([np.ones_like(a3), a3, a3 * a3], axis=1)
+
+
+class SortedBlocks:
+    """Sorted breakpoints and per-block weight sums (see :meth:`ExpectationOperator.sorted_blocks`).
+
+    Attributes: ``alphas (p,)``, ``m`` (real breakpoints), ``s0, s1, s2 (d, nb)`` the block sums
+    of ``M``, ``M v``, ``M v^2``, ``sabs (d, nb)`` an upper bound on the block sums of ``|M|``,
+    and ``columns(blocks) -> (d, len(blocks), 16)`` the exact weights of chosen blocks.
+    """
+
+    __slots__ = ("alphas", "m", "s0", "s1", "s2", "sabs", "columns")
+
+    def __init__(self, alphas, m, s0, s1, s2, sabs, columns):
+        self.alphas, self.m, self.s0, self.s1, self.s2 = alphas, m, s0, s1, s2
+        self.sabs, self.columns = sabs, columns
 
 
 class TruncationCumulants:
@@ -205,6 +260,49 @@ class RidgeExpectation(ExpectationOperator):
         linv = self.chol_inverse
         half = np.matmul(linv, xw.T, out=buffer("ridge.half", out.shape))
         return np.matmul(linv.T, half, out=out)
+
+    def _sorted_features(self, v, breakpoints_extra):
+        """Sorted breakpoints and the matching (weighted) feature rows, zero for extras/padding."""
+        v = np.asarray(v, dtype=float)
+        n = v.size
+        if len(breakpoints_extra):
+            v = np.concatenate([v, np.asarray(breakpoints_extra, dtype=float)])
+        order = np.argsort(v)
+        m = order.size
+        padded = -(-m // BLOCK) * BLOCK
+        alphas = np.empty(padded)
+        alphas[:m] = v[order]
+        alphas[m:] = alphas[m - 1]
+        src = np.full(padded, -1)
+        src[:m] = np.where(order < n, order, -1)
+        xs = np.take(self.phi, np.maximum(src, 0), axis=0, mode="clip",
+                     out=buffer("ridge.xs", (padded, self.n_dims)))
+        if self.weights is not None:
+            xs *= self.weights[np.maximum(src, 0), None]
+        missing = src < 0
+        if missing.any():
+            xs[missing] = 0.0
+        return alphas, xs, m
+
+    def sorted_blocks(self, v: np.ndarray, breakpoints_extra=()) -> SortedBlocks:
+        # M = Lambda^{-1} X^T is linear in the features: sum each block in feature space
+        # (one batched product), then map the (nb, d) sums by Lambda^{-1}. |M| is bounded by
+        # |Lambda^{-1}| |X|; exact columns are formed only for the blocks asked for.
+        alphas, xs, m = self._sorted_features(v, breakpoints_extra)
+        d = self.n_dims
+        x3 = xs.reshape(-1, BLOCK, d)
+        fsum = np.matmul(_block_powers(alphas), x3)  # (nb, 3, d)
+        linv = self.chol_inverse
+        sums = np.einsum("ij,bkj->kib", linv.T @ linv, fsum)  # (3, d, nb)
+        nonneg = bool((xs >= 0).all())
+        fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)
+        sabs = np.abs(linv.T @ linv) @ fabs.T
+
+        def columns(blocks):
+            cols = x3[blocks].reshape(-1, d)  # (len * 16, d)
+            return (linv.T @ (linv @ cols.T)).reshape(d, len(blocks), BLOCK)
+
+        return SortedBlocks(alphas, m, sums[0], sums[1], sums[2], sabs, columns)
 
     def rows(self, dims=None) -> np.ndarray:
         xw = self.phi if self.weights is None else self.phi * self.weights[:, None]
