@@ -52,6 +52,8 @@ def run_demo(seed: int = 0, n_trajectories: int = 500) -> dict:
         acts = np.stack([est.act(phi, h) for h in range(ds.horizon)])
         out[name] = est
         print(f"\n{name}")
-        print(f"  weights_ (H x d):\n{np.array2string(est.weights_, prefix='    ')}")
-        print(f"  greedy action per (step, state):\n{acts}")
+        print("  weights_ (rows: steps h = 0..H-1, columns: features)")
+        print("    " + np.array2string(est.weights_, prefix="    "))
+        print("  greedy action per step (rows) and state (columns)")
+        print("    " + np.array2string(acts, prefix="    "))
     return out
