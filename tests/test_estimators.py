@@ -6,8 +6,15 @@ from primal import chi2_primal, smooth_primal, tv_primal
 from scipy.special import xlogy
 
 from r2pvi import PEVI, R2PVI, FDivergence, OfflineDataset, cressie_read, load
-from r2pvi.duals import CHI2, KL, TV, FactorExpectation
-from r2pvi.duals import chi2_regularized, kl_regularized, tv_regularized
+from r2pvi.duals import (
+    CHI2,
+    KL,
+    TV,
+    FactorExpectation,
+    chi2_regularized,
+    kl_regularized,
+    tv_regularized,
+)
 
 # --------------------------------------------------------------------------- hand-computed
 

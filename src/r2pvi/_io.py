@@ -22,7 +22,7 @@ def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta:
         raise ValueError(f"array name {_META_KEY!r} is reserved")
     payload[_META_KEY] = np.array(json.dumps(header, sort_keys=True))
     with open(path, "wb") as fh:
-        np.savez_compressed(fh, **payload)
+        np.savez_compressed(fh, **payload)  # type: ignore[arg-type]
     return path
 
 

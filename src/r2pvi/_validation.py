@@ -39,6 +39,7 @@ def check_scalar(
     if isinstance(value, bool) or not isinstance(value, kind):
         what = "an integer" if integer else "a real number"
         raise TypeError(f"{name} must be {what}, got {value!r} ({type(value).__name__})")
+    value = float(value) if not integer else int(value)  # type: ignore[call-overload]
     if not np.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value!r}")
     if low is not None:

@@ -91,6 +91,7 @@ class OfflineDataset:
         self._next_phi = _next_phi  # (H, K, A, d)
         self._next_values = _next_values  # (H, K, A) or None when no value is known
         self._extras = dict(_extras or {})
+        self._nonnegative: bool | None = None
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -305,6 +306,13 @@ class OfflineDataset:
         if self._next_values is None:
             return np.full((self.n_trajectories, self.horizon, self.n_actions), np.nan)
         return _readonly(self._next_values.transpose(1, 0, 2))
+
+    @property
+    def nonnegative_next_features(self) -> bool:
+        """Whether every next-state feature is >= 0 (computed once, then cached)."""
+        if self._nonnegative is None:
+            self._nonnegative = bool((self._next_phi >= 0).all())
+        return self._nonnegative
 
     @property
     def has_known_values(self) -> bool:

@@ -177,10 +177,7 @@ def backward_induction(
         Regression weights ``1 / sigma_h^2`` (variance-aware variants); None means 1.
     """
     H, d = dataset.horizon, dataset.n_features
-    nonneg = getattr(dataset, "_nonnegative", None)
-    if nonneg is None:
-        nonneg = bool((dataset._next_phi >= 0).all())
-        dataset._nonnegative = nonneg
+    nonneg = dataset.nonnegative_next_features
     weights = np.zeros((H, d))
     thetas = np.zeros((H, d))
     chols = np.zeros((H, d, d))

@@ -34,6 +34,11 @@ class LinearEstimator:
     """
 
     _penalty_choices = PENALTIES
+    # Parameters every subclass stores in __init__ (declared for type checkers).
+    beta: float
+    gamma: float
+    r_max: float
+    reward_weights: np.ndarray | None
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -81,7 +86,7 @@ class LinearEstimator:
 
     # ------------------------------------------------------------------ validation
     def _validate_common(self, dataset: OfflineDataset) -> dict:
-        p = {
+        p: dict = {
             "beta": check_scalar(self.beta, "beta", low=0.0),
             "gamma": check_scalar(self.gamma, "gamma", low=0.0, low_inclusive=False),
             "r_max": check_scalar(self.r_max, "r_max", low=0.0, low_inclusive=False),

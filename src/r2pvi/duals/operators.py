@@ -144,8 +144,8 @@ BLOCK = 16
 
 def prefix_sums(x: np.ndarray) -> np.ndarray:
     """Cumulative sums along the last axis of a C-contiguous ``x (r, n)``, n a multiple of 16,
-    into a reused buffer: per-block sums by a GEMM with a triangular matrix of ones, then block offsets.
-    (NumPy's ``cumsum`` is sequential; this is about twice as fast for d x K weight rows.)
+    into a reused buffer: per-block sums by a GEMM with a triangular matrix of ones, then
+    block offsets (NumPy's ``cumsum`` is sequential; this is about twice as fast here).
     """
     r, n = x.shape
     blocks = x.reshape(r, n // BLOCK, BLOCK)
