@@ -45,15 +45,15 @@ def run_demo(seed: int = 0, n_trajectories: int = 500) -> dict:
         "R2PVI-KL (lam=0.5)": R2PVI("kl", 0.5, beta=0.1, reward_weights=theta),
         "R2PVI-chi2 (lam=0.5)": R2PVI("chi2", 0.5, beta=0.1, reward_weights=theta),
     }
-    np.set_printoptions(precision=3, suppress=True)
     out = {}
     for name, est in estimators.items():
         est.fit(ds)
         acts = np.stack([est.act(phi, h) for h in range(ds.horizon)])
         out[name] = est
+        fmt = {"float_kind": lambda x: f"{x:.3f}"}
         print(f"\n{name}")
         print("  weights_ (rows: steps h = 0..H-1, columns: features)")
-        print("    " + np.array2string(est.weights_, prefix="    "))
+        print("    " + np.array2string(est.weights_, prefix="    ", formatter=fmt))
         print("  greedy action per step (rows) and state (columns)")
         print("    " + np.array2string(acts, prefix="    "))
     return out
