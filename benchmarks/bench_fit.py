@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 import r2pvi
+from r2pvi.algorithms import DRPVI, DRVIL
 from r2pvi.duals.operators import RidgeExpectation, cholesky_gram
 
 
@@ -54,6 +55,10 @@ def estimators(theta):
         "R2PVI-TV": r2pvi.R2PVI("tv", 1.0, **kw),
         "R2PVI-KL": r2pvi.R2PVI("kl", 1.0, **kw),
         "R2PVI-chi2": r2pvi.R2PVI("chi2", 1.0, **kw),
+        "DRPVI": DRPVI(0.1, **kw),
+        "DRVI-L": DRVIL(0.1, **kw),
+        "VA-DRPVI": DRPVI(0.1, variance_aware=True, **kw),
+        "VA-R2PVI-TV": r2pvi.R2PVI("tv", 1.0, variance_aware=True, **kw),
     }
 
 

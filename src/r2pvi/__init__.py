@@ -6,7 +6,8 @@ and exact evaluation, on one backward-induction engine.
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .algorithms import PEVI, R2PVI, LinearEstimator
+from . import envs, evaluation
+from .algorithms import DRPVI, DRVIL, PEVI, R2PVI, LinearEstimator
 from .algorithms import load_estimator as load
 from .data import OfflineDataset, SimplexFeatureWarning
 from .duals import FDivergence, cressie_read
@@ -17,6 +18,8 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0+unknown"
 
 __all__ = [
+    "envs",
+    "evaluation",
     "OfflineDataset",
     "SimplexFeatureWarning",
     "FDivergence",
@@ -24,6 +27,8 @@ __all__ = [
     "LinearEstimator",
     "PEVI",
     "R2PVI",
+    "DRPVI",
+    "DRVIL",
     "load",
     "__version__",
 ]

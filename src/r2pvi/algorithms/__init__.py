@@ -1,6 +1,8 @@
 """Estimators: thin objects that tell the engine how to turn next-step values into weights."""
 
 from .base import ESTIMATOR_REGISTRY, LinearEstimator, load_estimator
+from .drpvi import DRPVI, TVBallRule
+from .drvil import DRVIL, KLBallRule
 from .pevi import PEVI, RidgeRule
 from .r2pvi import R2PVI, Chi2Rule, FDivergenceRule, KLRule, TVRule
 
@@ -15,4 +17,8 @@ __all__ = [
     "KLRule",
     "Chi2Rule",
     "FDivergenceRule",
+    "DRPVI",
+    "DRVIL",
+    "TVBallRule",
+    "KLBallRule",
 ]

@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
-import numbers
-
-import numpy as np
-
 from .._validation import check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
 from ..duals.regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
 from ..engine import StepRule
+from ._params import check_flag, check_v_min
+from ._params import floor_value as _floor
+from ._variance import VarianceAwareMixin
 from .base import LinearEstimator
 
 __all__ = ["R2PVI", "TVRule", "KLRule", "Chi2Rule", "FDivergenceRule"]
-
-
-def _floor(v_min, v):
-    return float(np.min(v)) if v_min == "data" else v_min
 
 
 class TVRule(StepRule):
@@ -63,7 +58,7 @@ class FDivergenceRule(StepRule):
 _CLOSED_FORMS = {"tv", "kl", "chi2"}
 
 
-class R2PVI(LinearEstimator):
+class R2PVI(VarianceAwareMixin, LinearEstimator):
     """Robust regularized pessimistic value iteration (the paper's R2PVI).
 
     ``Q_h = clip(phi^T (theta_h + w_h) - Gamma_h(phi), 0, (H - h) r_max)`` where ``w_h,i``
@@ -95,6 +90,11 @@ class R2PVI(LinearEstimator):
         Reward bound. ``Q_h`` is clipped to ``[0, (H - h) r_max]``; the KL floor is
         ``exp(-H r_max / lam)`` and chi^2 clips its moments to ``[0, H r_max]`` and
         ``[0, (H r_max)^2]`` (the paper's ``H`` with ``r_max = 1``).
+    variance_aware : bool, default False
+        VA-R2PVI-TV (TV only): a first, unweighted pass gives ``V_{h+1}``, whose conditional
+        variance ``sigma_h^2 = max{1, [phi^T z2]_[0,H^2] - ([phi^T z1]_[0,H])^2}`` weights a
+        second pass (weighted Gram matrix, targets and penalty); see
+        :func:`~r2pvi.algorithms._variance.variance_weights`.
 
     Attributes
     ----------
@@ -131,6 +131,7 @@ class R2PVI(LinearEstimator):
         v_min="data",
         reward_weights=None,
         r_max=1.0,
+        variance_aware=False,
     ):
         self.divergence = divergence
         self.lam = lam
@@ -140,17 +141,12 @@ class R2PVI(LinearEstimator):
         self.v_min = v_min
         self.reward_weights = reward_weights
         self.r_max = r_max
+        self.variance_aware = variance_aware
 
     def _validate_extra(self, dataset):
         lam = check_scalar(self.lam, "lam", low=0.0, low_inclusive=False)
-        if isinstance(self.v_min, str):
-            if self.v_min != "data":
-                raise ValueError(f"v_min must be 'data' or a number, got {self.v_min!r}")
-            v_min = "data"
-        elif isinstance(self.v_min, numbers.Real) and not isinstance(self.v_min, bool):
-            v_min = check_scalar(self.v_min, "v_min")
-        else:
-            raise TypeError(f"v_min must be 'data' or a number, got {self.v_min!r}")
+        v_min = check_v_min(self.v_min)
+        variance_aware = check_flag(self.variance_aware, "variance_aware")
         div = self.divergence
         if isinstance(div, str) and div.lower() in _CLOSED_FORMS:
             div = div.lower()
@@ -161,7 +157,13 @@ class R2PVI(LinearEstimator):
                 "divergence must be 'tv', 'kl', 'chi2', 'hellinger' or an FDivergence, got "
                 f"{div!r}"
             )
-        return {"lam": lam, "v_min": v_min, "divergence": div}
+        is_tv = div == "tv" if isinstance(div, str) else div.name == "tv"
+        if variance_aware and not is_tv:
+            raise ValueError(
+                "variance_aware=True is only defined for divergence='tv' (VA-R2PVI-TV), got "
+                f"divergence={self.divergence!r}; use variance_aware=False"
+            )
+        return {"lam": lam, "v_min": v_min, "divergence": div, "variance_aware": variance_aware}
 
     def _make_rule(self, params):
         div, lam, v_min = params["divergence"], params["lam"], params["v_min"]

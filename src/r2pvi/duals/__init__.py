@@ -1,5 +1,6 @@
 """The duals of the paper, written once against a linear expectation operator."""
 
+from .constrained import kl_constrained, tv_constrained
 from .fdivergence import (
     BUILTIN_DIVERGENCES,
     CHI2,
@@ -37,4 +38,6 @@ __all__ = [
     "f_regularized",
     "kl_regularized",
     "tv_regularized",
+    "tv_constrained",
+    "kl_constrained",
 ]

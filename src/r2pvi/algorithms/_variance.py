@@ -1,0 +1,75 @@
+"""Variance-aware variants (VA-DRPVI, VA-R2PVI-TV): a second, variance-weighted pass.
+
+Liu & Xu (2024), variance-aware DRPVI (VA-DRPVI), and the paper's VA-R2PVI-TV: a first pass of the
+unweighted estimator gives ``V_{h+1}``; the conditional variance of ``V_{h+1}`` is estimated
+by ridge regression of ``V`` and ``V^2`` under the first pass's Gram matrix; the second pass
+re-runs the same engine with regression weights ``1 / sigma_h^2`` (weighted Gram matrix,
+weighted targets, penalty with the weighted Gram matrix).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..data import OfflineDataset
+from ..duals.operators import RidgeExpectation
+from ..engine import FittedModel
+
+__all__ = ["VarianceAwareMixin", "variance_weights"]
+
+
+def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float) -> np.ndarray:
+    """Regression weights ``1 / sigma_h^2(s_h^tau, a_h^tau)``, shape (H, K).
+
+    ``sigma_h^2 = max{1, [phi^T z2]_{[0, v_upper^2]} - ([phi^T z1]_{[0, v_upper]})^2}``
+    (Liu & Xu 2024, variance estimator of VA-DRPVI), with ``z1``, ``z2`` the ridge estimates
+    of ``V_{h+1}`` and ``V_{h+1}^2`` under the first pass's Gram matrix ``Lambda_h`` and
+    ``v_upper = H r_max`` the value bound (the paper's ``H``). At ``h = H-1``, ``V_H = 0``
+    and ``sigma^2 = 1``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from r2pvi import OfflineDataset
+    >>> from r2pvi.algorithms import RidgeRule
+    >>> from r2pvi.engine import backward_induction
+    >>> rng = np.random.default_rng(0)
+    >>> phi = rng.dirichlet(np.ones(3), size=(40, 4))
+    >>> ds = OfflineDataset.from_features(phi, phi[..., 0], rng.dirichlet(np.ones(3), (40, 4, 2)))
+    >>> first = backward_induction(ds, RidgeRule(), beta=0.0, gamma=1.0, penalty="l1", r_max=1.0)
+    >>> w = variance_weights(ds, first, v_upper=4.0)
+    >>> w.shape, bool(np.all((w > 0) & (w <= 1))), bool(np.all(w[-1] == 1))
+    ((4, 40), True, True)
+    """
+    H, K = dataset.horizon, dataset.n_trajectories
+    weights = np.ones((H, K))
+    for h in range(H - 1):  # V_H = 0: sigma_{H-1}^2 = max(1, 0) = 1
+        v = first.next_state_values[h]
+        phi = dataset.step(h)[0]
+        z = RidgeExpectation(phi, first.gram_cholesky[h])(np.stack([v, v * v], axis=1))  # (d, 2)
+        pred = phi @ z
+        mean = np.clip(pred[:, 0], 0.0, v_upper)
+        second = np.clip(pred[:, 1], 0.0, v_upper * v_upper)
+        weights[h] = 1.0 / np.maximum(1.0, second - mean * mean)
+    return weights
+
+
+class VarianceAwareMixin:
+    """Adds the variance-aware second pass to an estimator with a ``variance_aware`` flag.
+
+    Put it before :class:`~r2pvi.algorithms.LinearEstimator` in the bases; the validated
+    parameters must contain ``"variance_aware"``. Subclasses (and tests) may override
+    :meth:`_sample_weights`.
+    """
+
+    def _sample_weights(self, dataset: OfflineDataset, first: FittedModel, params: dict):
+        return variance_weights(dataset, first, dataset.horizon * params["r_max"])
+
+    def _fit_model(self, dataset: OfflineDataset, params: dict) -> FittedModel:
+        first = self._run_engine(dataset, params)
+        if not params.get("variance_aware", False):
+            return first
+        weights = self._sample_weights(dataset, first, params)
+        if np.all(weights == 1.0):  # sigma^2 = 1 everywhere: the second pass is the first
+            return first
+        return self._run_engine(dataset, params, sample_weights=weights)

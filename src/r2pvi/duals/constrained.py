@@ -1,0 +1,519 @@
+"""Duals of the constrained problem ``inf {E_mu V : D(mu || mu0) <= rho}``, one per factor.
+
+These are the d-rectangular *uncertainty-ball* (d-DRMDP) counterparts of
+:mod:`r2pvi.duals.regularized`, used by the baselines DRPVI (TV ball, Liu & Xu 2024) and
+DRVI-L (KL ball, Ma et al. 2022). Every function takes an expectation operator ``E`` (d
+factors over n points), the values ``v (n,)`` at those points and the radii ``rho`` (a
+scalar or one per factor), and returns the d dual values ``w (d,)``. With a
+:class:`~r2pvi.duals.RidgeExpectation` they are the baselines' estimators; with a
+:class:`~r2pvi.duals.FactorExpectation` they are the exact robust expectations.
+
+A radius ``rho_i = 0`` makes the ball ``{mu0_i}``: the result is then the plain expectation
+``E_i(v)``, never a conservative approximation of it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._scratch import buffer
+from .operators import ExpectationOperator, FactorExpectation, RidgeExpectation
+
+__all__ = ["tv_constrained", "kl_constrained"]
+
+
+def _radii(rho, d: int) -> np.ndarray:
+    """``rho`` as a (d,) array of finite, non-negative radii."""
+    r = np.asarray(rho, dtype=float)
+    if r.ndim == 0:
+        r = np.full(d, float(r))
+    elif r.shape != (d,):
+        raise ValueError(f"rho must be a scalar or have shape (d,) = ({d},), got {r.shape}")
+    if not np.all(np.isfinite(r)) or np.any(r < 0):
+        raise ValueError(f"rho must be finite and >= 0, got {rho!r}")
+    return r
+
+
+# ---------------------------------------------------------------------------------- TV ball
+
+
+def tv_constrained(
+    E: ExpectationOperator, v: np.ndarray, rho, v_min: float | None = None
+) -> np.ndarray:
+    """TV ball: ``max_{alpha in [V_min, V_max]} E_i[V]_alpha - rho_i (alpha - min_s [V(s)]_alpha)``.
+
+    The dual of ``inf {E_mu V : D_TV(mu || mu0_i) <= rho_i}`` with ``D_TV = 1/2 sum |mu - mu0|``
+    (paper, remark after Prop. TV duality, from Shi et al. 2024; Liu & Xu 2024, eq. (4.4)).
+    For ``alpha >= V_min`` the last term is ``rho_i (alpha - V_min)``.
+
+    The objective is piecewise linear in ``alpha`` with breakpoints at the values, so its
+    maximum is attained at a breakpoint (or at ``V_min`` when that lies below the values), and
+    every breakpoint is accounted for exactly, with no Nelder-Mead. For ridge and factor
+    operators (``M = R psi^T``) an exact bounded search over blocks of sorted breakpoints
+    costs one sort and a few passes over the n x d features (see :func:`_tv_ball_blocks`);
+    other operators use the prefix sums of
+    :meth:`~r2pvi.duals.ExpectationOperator.truncation_cumulants`. ``rho_i = 0`` returns
+    ``E_i(v)``; for a distribution ``rho_i >= 1`` gives ``V_min``.
+
+    Parameters
+    ----------
+    E : ExpectationOperator
+    v : ndarray (n,)
+        Values at the operator's points.
+    rho : float or ndarray (d,)
+        Radii, >= 0.
+    v_min : float, optional
+        Minimum of V over the whole state space (mass can move to any state under TV); None
+        takes ``min(v)``. A ``v_min`` above ``min(v)`` is clamped to ``min(v)`` (the points of
+        ``v`` are states too).
+
+    Returns
+    -------
+    ndarray (d,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from r2pvi.duals import FactorExpectation, tv_constrained
+    >>> E = FactorExpectation(np.array([[0.5, 0.5, 0.0]]))
+    >>> v = np.array([1.0, 3.0, 0.0])
+    >>> tv_constrained(E, v, rho=0.25)   # move 1/4 of the mass from V=3 to V=0
+    array([1.25])
+    >>> tv_constrained(E, v, rho=0.0), tv_constrained(E, v, rho=1.0)
+    (array([2.]), array([0.]))
+    """
+    v = np.asarray(v, dtype=float)
+    rho = _radii(rho, E.n_dims)
+    plain = E(v)
+    if not np.any(rho > 0):
+        return plain
+    lowest = float(np.min(v))
+    floor = lowest if v_min is None else min(float(v_min), lowest)
+    factors = _factorization(E)
+    if factors is None:
+        best = _tv_ball_cumulants(E, v, rho, floor)
+    else:
+        best = _tv_ball_blocks(*factors, v, rho, floor)
+    if floor < lowest:  # alpha = V_min below every value: E_i[V]_alpha = alpha E_i(1)
+        np.maximum(best, floor * E(np.ones_like(v)), out=best)
+    return np.where(rho > 0, best, plain)
+
+
+def _factorization(E):
+    """``(psi (n, p), R (d, p))`` with ``M = R psi^T`` for the operators whose structure is
+    known (ridge: ``R = Lambda^{-1}``, ``psi = W Phi``; factors: ``R = I``, ``psi = mu^T``)."""
+    if isinstance(E, RidgeExpectation):
+        psi = E.phi if E.weights is None else E.phi * E.weights[:, None]
+        linv = E.chol_inverse
+        return psi, linv.T @ linv
+    if isinstance(E, FactorExpectation):
+        return E.mu.T, np.eye(E.n_dims)
+    return None
+
+
+def _tv_ball_cumulants(E, v, rho, floor):
+    """Any operator: ``max_k A_k + (B_k - rho) alpha_k + rho V_min`` from its cumulants."""
+    cum = E.truncation_cumulants(v)
+    obj = np.subtract(cum.b, rho[:, None], out=cum.b)  # the cumulants' buffers are ours now
+    obj *= cum.alphas
+    obj += cum.a
+    return obj.max(axis=1) + rho * floor
+
+
+_TV_BLOCK = 32  # breakpoints per block of the bounded search
+_TV_CHUNK = 1 << 20  # most elements gathered at once when refining blocks
+
+
+def _tv_ball_blocks(psi, R, v, rho, floor):
+    """``max_k F_ik``, ``F_ik = E_i([V]_alpha_k) - rho_i alpha_k`` over every breakpoint, for an
+    operator ``M = R psi^T``, by an exact bounded search over blocks of sorted breakpoints.
+
+    With the values sorted once, the breakpoints are cut into blocks of 32. Block sums of
+    ``psi_j`` and ``psi_j v_j`` and their prefix sums over blocks (small) give ``F`` exactly at
+    every block start. Inside block b, for every breakpoint ``alpha_k``,
+    ``F_ik - F_i(start) <= width_b max(0, T_i - rho_i + P_ib)``, where ``T_i`` is the weight of
+    the points after the block and ``P_ib >= sum_{j in b} max(M_ij, 0)`` (bounded through
+    the block sums of the positive and negative parts of ``psi``). Only the (factor, block)
+    pairs whose bound reaches the best start value are evaluated point by point. The result
+    is exactly the maximum over all breakpoints; typically a few percent of the pairs are
+    refined, so the cost is one sort and a few passes over the n x p features.
+    """
+    n, p = psi.shape
+    B = _TV_BLOCK
+    nb = -(-n // B)
+    m = nb * B
+    order = np.argsort(v)
+    alphas = np.empty(m)
+    np.take(v, order, out=alphas[:n], mode="clip")
+    alphas[n:] = alphas[n - 1]  # padding: copies of the last breakpoint with zero weight
+    rows = buffer("tvball.rows", (m, p))
+    np.take(psi, order, axis=0, out=rows[:n], mode="clip")  # "raise" would buffer `out`
+    rows[n:] = 0.0
+    blk = rows.reshape(nb, B, p)
+    ab = alphas.reshape(nb, B)
+    s0 = np.matmul(np.ones((nb, 1, B)), blk).reshape(nb, p)  # block sums of psi
+    s1 = np.matmul(ab[:, None, :], blk).reshape(nb, p)  # ... and of psi v
+    c0, c1 = np.cumsum(s0, axis=0), np.cumsum(s1, axis=0)
+    total = c0[-1].copy()
+    rt = R.T
+    w0, w1 = (c0 - s0) @ rt, (c1 - s1) @ rt  # (nb, d): E of [psi], [psi v] before each block
+    r_total = R @ total  # E_i(1)
+    start = ab[:, 0]
+    first = blk[:, 0, :] @ rt  # weights M_ij of the first point of each block
+    f_start = w1 + first * start[:, None] - start[:, None] * (w0 + first)
+    f_start += np.multiply.outer(start, r_total - rho)
+    best = f_start.max(axis=0)
+    tail = r_total - c0 @ rt  # weight after each block
+    if psi.min() >= 0.0:
+        pos = s0 @ np.maximum(rt, 0.0)
+    else:
+        pos = np.maximum(blk, 0.0).sum(axis=1) @ np.maximum(rt, 0.0)
+        pos += np.maximum(-blk, 0.0).sum(axis=1) @ np.maximum(-rt, 0.0)
+    width = ab[:, -1] - start
+    bound = f_start + width[:, None] * np.maximum(tail - rho + pos, 0.0)
+    slack = 1e-12 * max(1.0, float(np.max(np.abs(v))))
+    bi, di = np.nonzero(bound >= best - slack)
+    step = max(1, _TV_CHUNK // (B * p))
+    for lo in range(0, bi.size, step):
+        b_, i_ = bi[lo:lo + step], di[lo:lo + step]
+        pa = ab[b_]
+        w = np.einsum("nkp,np->nk", blk[b_], R[i_])  # M_ij of the points in the block
+        cw = np.cumsum(w, axis=1)
+        cw += w0[b_, i_][:, None]
+        w *= pa
+        cwv = np.cumsum(w, axis=1)
+        cwv += w1[b_, i_][:, None]
+        f = cwv - pa * cw + pa * (r_total[i_] - rho[i_])[:, None]
+        np.maximum.at(best, i_, f.max(axis=1))
+    return best + rho * floor
+
+
+# ---------------------------------------------------------------------------------- KL ball
+
+
+def kl_constrained(
+    E: ExpectationOperator,
+    v: np.ndarray,
+    rho,
+    *,
+    v_max: float | None = None,
+    centered: bool = False,
+    b_min: float | None = None,
+    xtol: float = 1e-12,
+    max_iter: int = 60,
+) -> np.ndarray:
+    """KL ball: ``sup_{b > 0} -b log E_i[exp(-V/b)] - b rho_i``.
+
+    The dual of ``inf {E_mu V : D_KL(mu || mu0_i) <= rho_i}`` (Hu & Hong 2013; used by
+    DRVI-L, Ma et al. 2022). The expectation ``u_i(b) = E_i[exp(-V/b)]`` is
+    floored at ``exp(-V_max/b)``, its value when every point has value ``V_max`` (as in
+    :func:`~r2pvi.duals.kl_regularized`), so that ``-b log u_i <= V_max``.
+
+    With ``centered=True`` the estimate is Ma et al.'s for a ridge operator, whose estimate of
+    ``u_i`` can leave (0, 1]: regress ``exp(-V/b) - 1`` (the ridge estimate shrinks towards 1,
+    not 0), then clip the estimate to ``[exp(-V_max/b) - 1, 0]``, i.e.
+    ``u_i = 1 + clip(E_i(exp(-V/b) - 1), exp(-V_max/b) - 1, 0)``. For an operator whose rows
+    sum to 1 (exact evaluation) both forms are the same.
+
+    The 1-D problem is solved in ``t = log b`` for all factors at once: the objective, its
+    first and second derivatives on a log-spaced grid of ``b`` (one operator call for all
+    factors) give each factor a bracket around its best grid point, refined by a safeguarded
+    Newton iteration (bisection when a step leaves the bracket); the best value seen is
+    returned. Everything is computed in the log domain, shifted by the smallest value each
+    factor can see, with ``expm1`` for large ``b``: finite and accurate for values up to
+    100 and beyond and ``b`` from 1e-9 (relative to the values) to ``V_max / rho``.
+    When ``b_min`` is None the supremum includes ``b -> 0``, whose limit for a non-negative
+    operator is the minimum of ``v`` over the support of the factor (used as a candidate).
+    ``rho_i = 0`` returns the plain expectation ``E_i(v)`` (the supremum as ``b -> inf``).
+
+    Parameters
+    ----------
+    E : ExpectationOperator
+    v : ndarray (n,)
+        Values at the operator's points.
+    rho : float or ndarray (d,)
+        Radii, >= 0.
+    v_max : float, optional
+        Upper bound on V that floors the estimate (``H`` in the papers); None takes ``max(v)``.
+    centered : bool, default False
+        Ma et al.'s centered regression of ``exp(-V/b) - 1`` with the clip to
+        ``[exp(-V_max/b) - 1, 0]`` (for ridge operators).
+    b_min : float, optional
+        Lower end of the search over ``b`` (Ma et al.'s ``underline beta``); None searches
+        ``b -> 0`` too.
+    xtol, max_iter
+        Tolerance on ``t = log b`` and the iteration cap of the Newton refinement.
+
+    Returns
+    -------
+    ndarray (d,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from r2pvi.duals import FactorExpectation, kl_constrained
+    >>> E = FactorExpectation(np.array([[0.5, 0.5], [0.9, 0.1]]))
+    >>> v = np.array([0.0, 1.0])
+    >>> kl_constrained(E, v, rho=0.0)          # plain expectation
+    array([0.5, 0.1])
+    >>> kl_constrained(E, v, rho=0.1).round(6)  # worst case within KL radius 0.1
+    array([0.280205, 0.000926])
+    >>> kl_constrained(E, v, rho=5.0)          # radius beyond log(1/mu0(argmin)): min V
+    array([0., 0.])
+    """
+    v = np.asarray(v, dtype=float)
+    d = E.n_dims
+    rho = _radii(rho, d)
+    plain = E(v)
+    dims = np.flatnonzero(rho > 0)
+    if dims.size == 0:
+        return plain
+    if b_min is not None and not (np.isfinite(b_min) and b_min > 0):
+        raise ValueError(f"b_min must be a positive number or None, got {b_min!r}")
+    prob = _KLProblem(E, v, rho, dims, v_max, centered)
+    best = prob.solve(b_min, xtol, max_iter)
+    out = plain.copy()
+    out[dims] = best
+    return out
+
+
+class _KLProblem:
+    """The KL-ball dual of the factors ``dims``: evaluation in log b on a grid and per factor."""
+
+    def __init__(self, E, v, rho, dims, v_max, centered):
+        self.E, self.v, self.dims = E, v, dims
+        self.rho = rho[dims]
+        self.top = float(np.max(v)) if v_max is None else float(v_max)
+        self.centered = bool(centered)
+        self.scale = max(float(np.max(np.abs(v))), abs(self.top)) or 1.0
+        lowest = float(np.min(v))
+        # Smallest value each factor can see: the shift of the log-domain computation and,
+        # for non-negative operators, the limit of the objective as b -> 0.
+        if E.nonnegative:
+            rows = E.rows(dims)
+            self.shift = np.where(rows > 0, v, np.inf).min(axis=1)
+            self.rows = rows
+        else:
+            self.shift = np.full(dims.size, lowest)
+            self.rows = None
+        self.shared_shift = bool(np.all(self.shift == self.shift[0]))
+        row_sums = E(np.ones_like(v))[dims]
+        # Distributions (non-negative rows): normalize by the row sums, exact up to rounding,
+        # so that u -> 1 as b -> inf exactly. Otherwise u_i = E_i[exp(-V/b)] + c_i with
+        # c_i = 1 - E_i(1) for the centered estimate (E_i[exp(-V/b) - 1] + 1) and 0 if not.
+        self.norm = row_sums if E.nonnegative else np.ones(dims.size)
+        self.c = 1.0 - row_sums if self.centered and not E.nonnegative else np.zeros(dims.size)
+        plain_base = E.nonnegative or self.centered
+        self.base = np.ones(dims.size) if plain_base else row_sums
+        spread = max(self.top - min(0.0, lowest), 1e-12 * self.scale)
+        with np.errstate(divide="ignore", over="ignore"):
+            self.b_hi = np.minimum(2.0 * spread / self.rho, _B_CAP * self.scale)
+
+    # ------------------------------------------------------------------ solver
+    def solve(self, b_min, xtol, max_iter):
+        lo_b = b_min if b_min is not None else _B_FLOOR * self.scale
+        hi_b = max(float(self.b_hi.max()), 4.0 * lo_b)
+        tgrid = _log_grid(lo_b, hi_b, self.scale)
+        n_grid = tgrid.size
+        g, dg, d2g = self.on_grid(np.exp(tgrid))
+        k = np.argmax(g, axis=1)
+        r = np.arange(k.size)
+        best = g[r, k]
+        t, f1, f2 = tgrid[k], dg[r, k], d2g[r, k]
+        lo = np.where(f1 > 0, t, tgrid[np.maximum(k - 1, 0)])  # bracket around the best
+        hi = np.where(f1 > 0, tgrid[np.minimum(k + 1, n_grid - 1)], t)
+        ftol = _FTOL * self.scale
+        for _ in range(max_iter):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                newton = t - f1 / f2
+                gain = 0.5 * f1 * f1 / np.abs(f2)
+            go = (hi - lo > xtol * (1.0 + np.abs(t))) & ~((f2 < 0) & (gain <= ftol))
+            if not go.any():
+                break
+            ok = (f2 < 0) & (newton > lo) & (newton < hi)
+            step = np.where(ok, newton, 0.5 * (lo + hi))
+            idx = np.flatnonzero(go)
+            gi, d1i, d2i = self.per_factor(idx, np.exp(step[idx]))
+            t[idx], f1[idx], f2[idx] = step[idx], d1i, d2i
+            best[idx] = np.maximum(best[idx], gi)
+            up = d1i > 0
+            lo[idx] = np.where(up, step[idx], lo[idx])
+            hi[idx] = np.where(up, hi[idx], step[idx])
+        if b_min is None and self.E.nonnegative:
+            np.maximum(best, np.minimum(self.shift, self.top), out=best)  # b -> 0
+        return best
+
+    # ------------------------------------------------------------------ moments
+    def on_grid(self, bs):
+        """Objective and its t-derivatives at every grid ``b`` for every factor: (m, J) each."""
+        out = [np.empty((self.dims.size, bs.size)) for _ in range(3)]
+        plain = bs >= self.scale
+        n = self.v.size
+        if plain.any():
+            b = bs[plain]
+            j = b.size
+            y = buffer("klball.grid", (n, 3 * j))
+            e1 = np.multiply.outer(self.v, -1.0 / b, out=y[:, :j])
+            ex = np.exp(e1, out=y[:, j:2 * j])
+            np.expm1(e1, out=e1)  # exp(-V/b) - 1
+            ex *= self.v[:, None]
+            np.multiply(ex, self.v[:, None], out=y[:, 2 * j:])
+            mom = self.E(y)[self.dims]
+            mom /= self.norm[:, None]
+            res = self._plain(mom[:, :j], mom[:, j:2 * j], mom[:, 2 * j:], b[None, :],
+                              self.base[:, None], self.rho[:, None])
+            for o, val in zip(out, res, strict=True):
+                o[:, plain] = val
+        if (~plain).any():
+            b = bs[~plain]
+            j = b.size
+            if self.shared_shift:
+                y = self.v - self.shift[0]
+                z = buffer("klball.grid", (n, 3 * j))
+                np.multiply.outer(np.maximum(y, 0.0), -1.0 / b, out=z[:, :j])
+                np.exp(z[:, :j], out=z[:, :j])
+                np.multiply(z[:, :j], y[:, None], out=z[:, j:2 * j])
+                np.multiply(z[:, j:2 * j], y[:, None], out=z[:, 2 * j:])
+                mom = self.E(z)[self.dims]
+                mom /= self.norm[:, None]
+                x0, x1, x2 = mom[:, :j], mom[:, j:2 * j], mom[:, 2 * j:]
+            else:  # non-negative operator whose factors see different minima: explicit rows
+                # (self.rows is set for non-negative operators)
+                y = np.maximum(self.v[None, :] - self.shift[:, None], 0.0)  # (m, n)
+                z = np.exp(-y[:, None, :] / b[None, :, None])  # (m, J, n)
+                x0 = np.einsum("in,ijn->ij", self.rows, z)
+                z *= y[:, None, :]
+                x1 = np.einsum("in,ijn->ij", self.rows, z)
+                z *= y[:, None, :]
+                x2 = np.einsum("in,ijn->ij", self.rows, z)
+                x0, x1, x2 = (x / self.norm[:, None] for x in (x0, x1, x2))
+            res = self._shifted(x0, x1, x2, self.shift[:, None], b[None, :], self.c[:, None],
+                                self.rho[:, None])
+            for o, val in zip(out, res, strict=True):
+                o[:, ~plain] = val
+        return out
+
+    def per_factor(self, idx, b):
+        """Objective and t-derivatives of factors ``idx`` (positions in ``dims``), each at its
+        own ``b``: row-wise products of the explicit weights with the transformed values."""
+        g, d1, d2 = (np.empty(idx.size) for _ in range(3))
+        plain = b >= self.scale
+        for sel, is_plain in ((np.flatnonzero(plain), True), (np.flatnonzero(~plain), False)):
+            if sel.size == 0:
+                continue
+            rows, bb = idx[sel], b[sel]
+            m = sel.size
+            n = self.v.size
+            z = buffer("klball.z", (3, m, n))
+            if is_plain:
+                np.multiply.outer(-1.0 / bb, self.v, out=z[0])
+                np.exp(z[0], out=z[1])
+                np.expm1(z[0], out=z[0])
+                np.multiply(z[1], self.v, out=z[1])
+                np.multiply(z[1], self.v, out=z[2])
+            else:
+                y = self.v[None, :] - self.shift[rows, None]
+                np.multiply(y, (-1.0 / bb)[:, None], out=z[0])
+                np.minimum(z[0], 0.0, out=z[0])  # points outside a factor's support: weight 0
+                np.exp(z[0], out=z[0])
+                np.multiply(z[0], y, out=z[1])
+                np.multiply(z[1], y, out=z[2])
+            mom = self._diagonal(z.reshape(3 * m, n), rows) / self.norm[rows]
+            if is_plain:
+                res = self._plain(mom[0], mom[1], mom[2], bb, self.base[rows], self.rho[rows])
+            else:
+                res = self._shifted(mom[0], mom[1], mom[2], self.shift[rows], bb, self.c[rows],
+                                    self.rho[rows])
+            g[sel], d1[sel], d2[sel] = res
+        return g, d1, d2
+
+    def _diagonal(self, zs, rows):
+        """``E_{dims[rows[j]]}(zs[k m + j])``, k = 0, 1, 2, by the explicit weight rows: (3, m)."""
+        m = rows.size
+        if self.rows is None:  # the operator's weight rows, computed once per call
+            factors = _factorization(self.E)
+            if factors is None:
+                full = self.E.matrix
+                self.rows = full if self.dims.size == full.shape[0] else full[self.dims]
+            else:  # M = R psi^T by one GEMM into a reused buffer
+                psi, r = factors
+                out = buffer("klball.rows", (self.dims.size, psi.shape[0]))
+                self.rows = np.matmul(r[self.dims], psi.T, out=out)
+        w = self.rows if m == self.rows.shape[0] else self.rows[rows]
+        return np.stack([np.einsum("jn,jn->j", w, zs[k * m:(k + 1) * m]) for k in range(3)])
+
+    # ------------------------------------------------------------------ objective
+    def _plain(self, e1, p1, p2, b, base, rho):
+        """From ``D = E[exp(-V/b) - 1]``, ``P1 = E[V exp(-V/b)]``, ``P2 = E[V^2 exp(-V/b)]``
+        (accurate for large b): ``u = base + D`` with ``base = 1`` (centered, or normalized
+        distributions) or ``E(1)``."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = e1 + (base - 1.0)
+            log_u = np.where(w > -1.0, np.log1p(np.maximum(w, -1.0)), -np.inf)
+            u = 1.0 + w
+            t1 = p1 / (b * u)
+            b3g2 = -(p2 * u - p1 * p1) / (u * u)
+        return self._finish(log_u, t1, b3g2, b, rho)
+
+    def _shifted(self, x0, x1, x2, m, b, c, rho):
+        """From the moments of ``y = V - m``: ``X_k = E[y^k exp(-y/b)]`` (accurate for small b):
+        ``u = exp(-m/b) X_0 + c``."""
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+            pos = x0 > 0
+            log_x = np.log(np.where(pos, x0, 1.0))
+            q = np.where(x0 != 0, x1 / x0, 0.0)  # tilted mean of y
+            var = np.where(x0 != 0, x2 / x0, 0.0) - q * q  # tilted variance
+            log_p = -m / b + log_x
+            if not np.any(c):
+                log_u = np.where(pos, log_p, -np.inf)
+                frac = np.ones_like(log_u)
+            else:
+                both = pos & (c > 0)
+                log_c = np.log(np.where(c > 0, c, 1.0))
+                p = np.where(pos, np.exp(log_p), x0 * np.exp(-m / b))
+                u = p + c
+                log_u = np.where(both, np.logaddexp(log_p, log_c),
+                                 np.where(u > 0, np.log(np.where(u > 0, u, 1.0)), -np.inf))
+                frac = np.where(both, np.exp(log_p - log_u), np.where(u != 0, p / u, 0.0))
+            mean = m + q
+            t1 = frac * mean / b
+            b3g2 = -frac * (var + (1.0 - frac) * mean * mean)
+        return self._finish(log_u, t1, b3g2, b, rho)
+
+    def _finish(self, log_u, t1, b3g2, b, rho):
+        """Clip ``log u`` to ``[-V_max/b, 0 if centered]`` and return ``G, dG/dt, d2G/dt2`` of
+        ``G(t) = -b (log u + rho)``, ``b = e^t``; ``t1 = b u'/u`` and ``b3g2 = b^3 g''(b)``."""
+        b = np.broadcast_to(b, log_u.shape)
+        log_lo = -self.top / b
+        low = ~(log_u >= log_lo)  # NaN/-inf too
+        log_u = np.where(low, log_lo, log_u)
+        t1 = np.where(low, -log_lo, t1)
+        b3g2 = np.where(low, 0.0, b3g2)
+        if self.centered:
+            high = log_u > 0.0
+            log_u = np.where(high, 0.0, log_u)
+            t1 = np.where(high, 0.0, t1)
+            b3g2 = np.where(high, 0.0, b3g2)
+        gp = -log_u - t1 - rho  # dg/db
+        g = -b * (log_u + rho)
+        d1 = b * gp
+        d2 = d1 + b3g2 / b
+        bad = ~np.isfinite(g)
+        if bad.any():
+            g, d1, d2 = np.where(bad, -np.inf, g), np.where(bad, 0.0, d1), np.where(bad, -1.0, d2)
+        return g, d1, d2
+
+
+_B_FLOOR = 1e-9  # smallest b searched (b_min=None), relative to the values
+_B_CAP = 1e16  # largest b searched, relative to the values: rho below ~1e-30 acts as 0
+_FTOL = 1e-14  # Newton stops when its predicted gain is below this, relative to the values
+
+
+def _log_grid(lo_b, hi_b, scale):
+    """Grid of ``t = log b``: step 0.75 from ``1e-3 scale`` up (where the maximizers of the
+    learning problems lie), step 2.5 below (the objective is nearly linear in b there)."""
+    t_lo, t_hi = np.log(lo_b), np.log(hi_b)
+    t_mid = min(max(np.log(1e-3 * scale), t_lo), t_hi)
+    coarse = np.linspace(t_lo, t_mid, int(np.ceil((t_mid - t_lo) / 2.5)) + 1)
+    fine = np.linspace(t_mid, t_hi, int(np.ceil((t_hi - t_mid) / 0.75)) + 1)
+    return np.concatenate([coarse[:-1], fine])

@@ -1,0 +1,32 @@
+"""Environments: finite linear MDPs with explicit factors and the paper's benchmarks.
+
+- :class:`FiniteLinearMDP` — any finite d-rectangular linear MDP
+  ``P_h(s'|s,a) = sum_i phi_i(s,a) mu_{h,i}(s')``;
+- :class:`SimulatedLinearMDP` — the paper's simulated linear MDP (Appendix A.1);
+- :class:`HardInstance` — the hard instances of the lower bound;
+- :class:`AmericanPutOption` — the simulated American put option (Appendix A.2).
+
+Each collects offline datasets exactly as the paper does (``env.collect``). Exact
+evaluation lives in :mod:`r2pvi.evaluation`. The Gymnasium adapters (:mod:`r2pvi.envs.gym`,
+extra ``gym``) and the Minari import/export (:mod:`r2pvi.envs.minari`, extra ``minari``) are
+imported only when used.
+"""
+
+from ._dataset import Trajectories
+from .finite import FiniteLinearMDP
+from .hard_instance import HardInstance
+from .policies import policy_table
+from .put_option import EXERCISE, HOLD, AmericanPutOption
+from .simulated import SIMULATED_ACTIONS, SimulatedLinearMDP
+
+__all__ = [
+    "FiniteLinearMDP",
+    "SimulatedLinearMDP",
+    "SIMULATED_ACTIONS",
+    "HardInstance",
+    "AmericanPutOption",
+    "HOLD",
+    "EXERCISE",
+    "Trajectories",
+    "policy_table",
+]
