@@ -20,7 +20,6 @@ from r2pvi.duals import (
     kl_constrained,
     tv_constrained,
 )
-from r2pvi.duals.constrained import _factorization, _tv_ball_blocks, _tv_ball_cumulants
 
 TOL = 1e-6
 
@@ -169,8 +168,9 @@ def test_tv_ball_block_search_equals_every_breakpoint(seed, n, d, weighted, sign
         v[rng.random(n) < 0.4] = 0.0
     rho = rng.uniform(0.0, 1.0, size=d)
     floor = v.min() - rng.uniform(0.0, 1.0)
-    np.testing.assert_allclose(_tv_ball_blocks(*_factorization(E), v, rho, floor),
-                               _tv_ball_cumulants(E, v, rho, floor), atol=1e-10, rtol=0)
+    np.testing.assert_allclose(tv_constrained(E, v, rho, floor, method="blockwise"),
+                               tv_constrained(E, v, rho, floor, method="dense"), atol=1e-10,
+                               rtol=0)
 
 
 def test_tv_ball_block_search_on_factor_distributions_and_a_large_ridge_problem():
@@ -178,13 +178,17 @@ def test_tv_ball_block_search_on_factor_distributions_and_a_large_ridge_problem(
     E = FactorExpectation(mu)
     v = rng.uniform(0.0, 10.0, size=300)
     rho = rng.uniform(0.0, 0.5, size=5)
-    np.testing.assert_allclose(_tv_ball_blocks(*_factorization(E), v, rho, 0.0),
-                               _tv_ball_cumulants(E, v, rho, 0.0), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(tv_constrained(E, v, rho, 0.0, method="blockwise"),
+                               tv_constrained(E, v, rho, 0.0, method="dense"), atol=1e-12,
+                               rtol=0)
     rng, E = random_ridge(5, 5000, 12, False)
     v = np.clip(rng.normal(3.0, 1.0, 5000), 0.0, None)
     rho = np.full(12, 0.1)
-    np.testing.assert_allclose(_tv_ball_blocks(*_factorization(E), v, rho, 0.0),
-                               _tv_ball_cumulants(E, v, rho, 0.0), atol=1e-10, rtol=0)
+    np.testing.assert_allclose(tv_constrained(E, v, rho, 0.0, method="blockwise"),
+                               tv_constrained(E, v, rho, 0.0, method="dense"), atol=1e-10,
+                               rtol=0)
+    with pytest.raises(ValueError, match="method must be"):
+        tv_constrained(E, v, rho, method="fast")
 
 
 def brute_tv_objective(E, v, rho, floor):

@@ -18,6 +18,7 @@ import numpy as np
 
 from ._scratch import buffer
 from .operators import ExpectationOperator, FactorExpectation, RidgeExpectation
+from .piecewise import tv_ball_max
 
 __all__ = ["tv_constrained", "kl_constrained"]
 
@@ -38,7 +39,7 @@ def _radii(rho, d: int) -> np.ndarray:
 
 
 def tv_constrained(
-    E: ExpectationOperator, v: np.ndarray, rho, v_min: float | None = None
+    E: ExpectationOperator, v: np.ndarray, rho, v_min: float | None = None, method: str = "auto"
 ) -> np.ndarray:
     """TV ball: ``max_{alpha in [V_min, V_max]} E_i[V]_alpha - rho_i (alpha - min_s [V(s)]_alpha)``.
 
@@ -48,12 +49,13 @@ def tv_constrained(
 
     The objective is piecewise linear in ``alpha`` with breakpoints at the values, so its
     maximum is attained at a breakpoint (or at ``V_min`` when that lies below the values), and
-    every breakpoint is accounted for exactly, with no Nelder-Mead. For ridge and factor
-    operators (``M = R psi^T``) an exact bounded search over blocks of sorted breakpoints
-    costs one sort and a few passes over the n x d features (see :func:`_tv_ball_blocks`);
-    other operators use the prefix sums of
-    :meth:`~r2pvi.duals.ExpectationOperator.truncation_cumulants`. ``rho_i = 0`` returns
-    ``E_i(v)``; for a distribution ``rho_i >= 1`` gives ``V_min``.
+    every breakpoint is accounted for exactly, with no Nelder-Mead: ``method="dense"``
+    evaluates them all from the prefix sums of
+    :meth:`~r2pvi.duals.ExpectationOperator.truncation_cumulants`; ``"blockwise"`` gives the
+    same maximum by the branch and bound over blocks of sorted breakpoints shared with the
+    chi^2 dual (:class:`~r2pvi.duals.piecewise.BlockScan`); ``"auto"`` takes blockwise from
+    512 values on. ``rho_i = 0`` returns ``E_i(v)``; for a distribution ``rho_i >= 1`` gives
+    ``V_min``.
 
     Parameters
     ----------
@@ -89,11 +91,15 @@ def tv_constrained(
         return plain
     lowest = float(np.min(v))
     floor = lowest if v_min is None else min(float(v_min), lowest)
-    factors = _factorization(E)
-    if factors is None:
-        best = _tv_ball_cumulants(E, v, rho, floor)
+    if method == "auto":
+        method = "blockwise" if v.size >= 512 else "dense"
+    if method == "dense":
+        best = _tv_ball_cumulants(E, v, rho)
+    elif method == "blockwise":
+        best = tv_ball_max(E, v, rho)
     else:
-        best = _tv_ball_blocks(*factors, v, rho, floor)
+        raise ValueError(f"method must be 'auto', 'dense' or 'blockwise', got {method!r}")
+    best += rho * floor
     if floor < lowest:  # alpha = V_min below every value: E_i[V]_alpha = alpha E_i(1)
         np.maximum(best, floor * E(np.ones_like(v)), out=best)
     return np.where(rho > 0, best, plain)
@@ -111,81 +117,13 @@ def _factorization(E):
     return None
 
 
-def _tv_ball_cumulants(E, v, rho, floor):
-    """Any operator: ``max_k A_k + (B_k - rho) alpha_k + rho V_min`` from its cumulants."""
+def _tv_ball_cumulants(E, v, rho):
+    """Every breakpoint from full prefix sums: ``max_k A_k + (B_k - rho) alpha_k`` (reference)."""
     cum = E.truncation_cumulants(v)
     obj = np.subtract(cum.b, rho[:, None], out=cum.b)  # the cumulants' buffers are ours now
     obj *= cum.alphas
     obj += cum.a
-    return obj.max(axis=1) + rho * floor
-
-
-_TV_BLOCK = 32  # breakpoints per block of the bounded search
-_TV_CHUNK = 1 << 20  # most elements gathered at once when refining blocks
-
-
-def _tv_ball_blocks(psi, R, v, rho, floor):
-    """``max_k F_ik``, ``F_ik = E_i([V]_alpha_k) - rho_i alpha_k`` over every breakpoint, for an
-    operator ``M = R psi^T``, by an exact bounded search over blocks of sorted breakpoints.
-
-    With the values sorted once, the breakpoints are cut into blocks of 32. Block sums of
-    ``psi_j`` and ``psi_j v_j`` and their prefix sums over blocks (small) give ``F`` exactly at
-    every block start. Inside block b, for every breakpoint ``alpha_k``,
-    ``F_ik - F_i(start) <= width_b max(0, T_i - rho_i + P_ib)``, where ``T_i`` is the weight of
-    the points after the block and ``P_ib >= sum_{j in b} max(M_ij, 0)`` (bounded through
-    the block sums of the positive and negative parts of ``psi``). Only the (factor, block)
-    pairs whose bound reaches the best start value are evaluated point by point. The result
-    is exactly the maximum over all breakpoints; typically a few percent of the pairs are
-    refined, so the cost is one sort and a few passes over the n x p features.
-    """
-    n, p = psi.shape
-    B = _TV_BLOCK
-    nb = -(-n // B)
-    m = nb * B
-    order = np.argsort(v)
-    alphas = np.empty(m)
-    np.take(v, order, out=alphas[:n], mode="clip")
-    alphas[n:] = alphas[n - 1]  # padding: copies of the last breakpoint with zero weight
-    rows = buffer("tvball.rows", (m, p))
-    np.take(psi, order, axis=0, out=rows[:n], mode="clip")  # "raise" would buffer `out`
-    rows[n:] = 0.0
-    blk = rows.reshape(nb, B, p)
-    ab = alphas.reshape(nb, B)
-    s0 = np.matmul(np.ones((nb, 1, B)), blk).reshape(nb, p)  # block sums of psi
-    s1 = np.matmul(ab[:, None, :], blk).reshape(nb, p)  # ... and of psi v
-    c0, c1 = np.cumsum(s0, axis=0), np.cumsum(s1, axis=0)
-    total = c0[-1].copy()
-    rt = R.T
-    w0, w1 = (c0 - s0) @ rt, (c1 - s1) @ rt  # (nb, d): E of [psi], [psi v] before each block
-    r_total = R @ total  # E_i(1)
-    start = ab[:, 0]
-    first = blk[:, 0, :] @ rt  # weights M_ij of the first point of each block
-    f_start = w1 + first * start[:, None] - start[:, None] * (w0 + first)
-    f_start += np.multiply.outer(start, r_total - rho)
-    best = f_start.max(axis=0)
-    tail = r_total - c0 @ rt  # weight after each block
-    if psi.min() >= 0.0:
-        pos = s0 @ np.maximum(rt, 0.0)
-    else:
-        pos = np.maximum(blk, 0.0).sum(axis=1) @ np.maximum(rt, 0.0)
-        pos += np.maximum(-blk, 0.0).sum(axis=1) @ np.maximum(-rt, 0.0)
-    width = ab[:, -1] - start
-    bound = f_start + width[:, None] * np.maximum(tail - rho + pos, 0.0)
-    slack = 1e-12 * max(1.0, float(np.max(np.abs(v))))
-    bi, di = np.nonzero(bound >= best - slack)
-    step = max(1, _TV_CHUNK // (B * p))
-    for lo in range(0, bi.size, step):
-        b_, i_ = bi[lo:lo + step], di[lo:lo + step]
-        pa = ab[b_]
-        w = np.einsum("nkp,np->nk", blk[b_], R[i_])  # M_ij of the points in the block
-        cw = np.cumsum(w, axis=1)
-        cw += w0[b_, i_][:, None]
-        w *= pa
-        cwv = np.cumsum(w, axis=1)
-        cwv += w1[b_, i_][:, None]
-        f = cwv - pa * cw + pa * (r_total[i_] - rho[i_])[:, None]
-        np.maximum.at(best, i_, f.max(axis=1))
-    return best + rho * floor
+    return obj.max(axis=1)
 
 
 # ---------------------------------------------------------------------------------- KL ball

@@ -23,6 +23,7 @@ __all__ = [
     "cholesky_gram",
     "cholesky_solve",
     "prefix_sums",
+    "sort_breakpoints",
     "BLOCK",
 ]
 
@@ -81,19 +82,8 @@ class ExpectationOperator:
         the point at ``alphas[k]`` (zero for extra breakpoints and padding); the first ``m``
         entries are the real breakpoints. ``weights`` is a reused work buffer.
         """
-        v = np.asarray(v, dtype=float)
-        n = v.size
-        if len(breakpoints_extra):
-            v = np.concatenate([v, np.asarray(breakpoints_extra, dtype=float)])
-        order = np.argsort(v)
-        m = order.size
-        padded = -(-m // BLOCK) * BLOCK
-        alphas = np.empty(padded)
-        alphas[:m] = v[order]
-        alphas[m:] = alphas[m - 1]
-        src = np.full(padded, -1)
-        src[:m] = np.where(order < n, order, -1)
-        weights = self.weight_columns(src, out=buffer(key, (self.n_dims, padded)))
+        alphas, src, m = sort_breakpoints(v, breakpoints_extra)
+        weights = self.weight_columns(src, out=buffer(key, (self.n_dims, src.size)))
         return alphas, weights, m
 
     def sorted_blocks(self, v: np.ndarray, breakpoints_extra=()) -> SortedBlocks:
@@ -158,6 +148,28 @@ def prefix_sums(x: np.ndarray) -> np.ndarray:
 
 
 _UPPER_ONES = np.triu(np.ones((BLOCK, BLOCK)))
+
+
+def sort_breakpoints(v, extra=()) -> tuple[np.ndarray, np.ndarray, int]:
+    """Sort ``v`` plus ``extra`` breakpoints once: ``(alphas, src, m)``.
+
+    ``alphas`` is increasing and padded to a multiple of ``BLOCK`` by repeating the largest;
+    ``src[k]`` is the index in ``v`` of the point at ``alphas[k]``, or -1 for an extra
+    breakpoint or padding (zero weight); ``m`` counts the real and extra breakpoints.
+    """
+    v = np.asarray(v, dtype=float)
+    n = v.size
+    if len(extra):
+        v = np.concatenate([v, np.asarray(extra, dtype=float)])
+    order = np.argsort(v)
+    m = order.size
+    padded = -(-m // BLOCK) * BLOCK
+    alphas = np.empty(padded)
+    alphas[:m] = v[order]
+    alphas[m:] = alphas[m - 1]
+    src = np.full(padded, -1)
+    src[:m] = np.where(order < n, order, -1)
+    return alphas, src, m
 
 
 def _block_powers(alphas: np.ndarray) -> np.ndarray:
@@ -263,20 +275,9 @@ class RidgeExpectation(ExpectationOperator):
 
     def _sorted_features(self, v, breakpoints_extra):
         """Sorted breakpoints and the matching (weighted) feature rows, zero for extras/padding."""
-        v = np.asarray(v, dtype=float)
-        n = v.size
-        if len(breakpoints_extra):
-            v = np.concatenate([v, np.asarray(breakpoints_extra, dtype=float)])
-        order = np.argsort(v)
-        m = order.size
-        padded = -(-m // BLOCK) * BLOCK
-        alphas = np.empty(padded)
-        alphas[:m] = v[order]
-        alphas[m:] = alphas[m - 1]
-        src = np.full(padded, -1)
-        src[:m] = np.where(order < n, order, -1)
+        alphas, src, m = sort_breakpoints(v, breakpoints_extra)
         xs = np.take(self.phi, np.maximum(src, 0), axis=0, mode="clip",
-                     out=buffer("ridge.xs", (padded, self.n_dims)))
+                     out=buffer("ridge.xs", (src.size, self.n_dims)))
         if self.weights is not None:
             xs *= self.weights[np.maximum(src, 0), None]
         missing = src < 0
@@ -293,7 +294,9 @@ class RidgeExpectation(ExpectationOperator):
         x3 = xs.reshape(-1, BLOCK, d)
         fsum = np.matmul(_block_powers(alphas), x3)  # (nb, 3, d)
         linv = self.chol_inverse
-        sums = np.einsum("ij,bkj->kib", linv.T @ linv, fsum)  # (3, d, nb)
+        nb = fsum.shape[0]
+        # (nb * 3, d) @ Lambda^{-1} as one GEMM (Lambda^{-1} is symmetric), then (3, d, nb).
+        sums = (fsum.reshape(-1, d) @ (linv.T @ linv)).reshape(nb, 3, d).transpose(1, 2, 0)
         nonneg = bool((xs >= 0).all())
         fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)
         sabs = np.abs(linv.T @ linv) @ fabs.T

@@ -24,7 +24,9 @@ import numpy as np
 from ._scratch import buffer
 from .operators import BLOCK, ExpectationOperator
 
-__all__ = ["chi2_objective", "segments_max", "blockwise_max", "dense_max"]
+__all__ = [
+    "chi2_objective", "segments_max", "blockwise_max", "dense_max", "tv_ball_max", "BlockScan",
+]
 
 
 def chi2_objective(e1, e2, lam, mean_clip=None, second_clip=None, out=None):
@@ -128,46 +130,89 @@ def dense_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, 
                         scratch=True)
 
 
+class BlockScan:
+    """Exact branch-and-bound scaffolding over blocks of 16 sorted breakpoints.
+
+    From :meth:`~r2pvi.duals.ExpectationOperator.sorted_blocks` it holds, for every factor and
+    block: the exact ``E1 = E([V]_alpha)`` and ``E2 = E([V]_alpha^2)`` at the block's first
+    breakpoint (``e1_start``, ``e2_start``), a bound ``slope`` on ``|dE1/dalpha|`` inside the
+    block (the weight after the block plus the block's sum of ``|M|``), the block's range of
+    alpha ``[start, end]`` (``end`` is the next block's start, the largest value for the last),
+    and ``E1``, ``E2`` at the largest value (``e1_top``, ``e2_top``, at ``top``). A dual then
+    bounds its objective per (factor, block) and asks :meth:`segments` for the exact segment
+    coefficients of the pairs whose bound beats the best value found.
+    """
+
+    def __init__(self, E: ExpectationOperator, v, extra=()):
+        sb = E.sorted_blocks(v, extra)
+        self.alphas = sb.alphas
+        s0, s1, s2 = sb.s0, sb.s1, sb.s2
+        self._p0, self._p1, self._p2 = (np.cumsum(s, axis=1) - s for s in (s0, s1, s2))
+        self._total = s0.sum(axis=1, keepdims=True)
+        tail = self._total - self._p0  # weight of the points at or after each block start
+        self._al3 = sb.alphas.reshape(-1, BLOCK)
+        self.start = self._al3[:, 0]
+        self.end = np.append(self.start[1:], sb.alphas[-1])
+        self.top = float(sb.alphas[-1])
+        self.e1_start = self._p1 + tail * self.start
+        self.e2_start = self._p2 + tail * self.start**2
+        self.e1_top = s1.sum(axis=1)
+        self.e2_top = s2.sum(axis=1)
+        self.slope = np.abs(tail - s0) + sb.sabs
+        self._columns = sb.columns
+
+    def segments(self, rows, blocks):
+        """Exact coefficients ``(a, b, c, alphas)``, each ``(P, 17)``, on every segment of the
+        (factor, block) pairs ``(rows, blocks)``: on segment k ``E1 = a_k + b_k alpha`` and
+        ``E2 = c_k + b_k alpha^2``; the last column is the next block's start, reached by the
+        block's last segment (its coefficients repeated)."""
+        uniq, inverse = np.unique(blocks, return_inverse=True)
+        wb = self._columns(uniq)[rows, inverse]  # (P, 16) exact weights
+        ab = self._al3[blocks]
+        a = self._p1[rows, blocks, None] + np.cumsum(wb * ab, axis=1)
+        c = self._p2[rows, blocks, None] + np.cumsum(wb * ab * ab, axis=1)
+        b = self._total[rows] - (self._p0[rows, blocks, None] + np.cumsum(wb, axis=1))
+        last = lambda x: np.concatenate([x, x[:, -1:]], axis=1)  # noqa: E731
+        al = np.concatenate([ab, self.end[blocks, None]], axis=1)
+        return last(a), last(b), last(c), al
+
+
 def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, extra=()):
-    """The exact maximum by branch and bound over blocks of 16 breakpoints (see module doc)."""
-    blocks_ = E.sorted_blocks(v, extra)
-    alphas, s0, s1, s2, sa = blocks_.alphas, blocks_.s0, blocks_.s1, blocks_.s2, blocks_.sabs
-    al3 = alphas.reshape(-1, BLOCK)
-    p0, p1, p2 = (np.cumsum(s, axis=1) - s for s in (s0, s1, s2))
-    total = s0.sum(axis=1, keepdims=True)
-    tail = total - p0  # weight of the points at or after each block start
-    start = al3[:, 0]
-    end = np.append(start[1:], alphas[-1])  # the next block start (the maximum for the last)
-    # Exact values at every block start, and at the largest breakpoint.
-    e1s = p1 + tail * start
-    e2s = p2 + tail * start**2
-    best = chi2_objective(e1s, e2s, lam, mean_clip, second_clip).max(axis=1)
-    top = chi2_objective(s1.sum(axis=1), s2.sum(axis=1), lam, mean_clip, second_clip)
+    """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc)."""
+    scan = BlockScan(E, v, extra)
+    best = chi2_objective(scan.e1_start, scan.e2_start, lam, mean_clip, second_clip).max(axis=1)
+    top = chi2_objective(scan.e1_top, scan.e2_top, lam, mean_clip, second_clip)
     best = np.maximum(best, top)
-    # Bounds on each block: |slope of E1| = |B| <= |weight after the block| + sum |M| in it.
-    slope = np.abs(tail - s0) + sa
-    span1 = end - start
-    sq = np.maximum(start**2, end**2)
-    span2 = sq - np.where((start < 0) & (end > 0), 0.0, np.minimum(start**2, end**2))
-    e1_lo, e1_hi = e1s - slope * span1, e1s + slope * span1
-    e2_lo = e2s - slope * span2
+    # Bounds on each block: E1 within slope * width of its start, E2 within slope * the
+    # block's range of alpha^2; g grows with E1 (convex in the clipped E1) and falls with E2.
+    span1 = scan.end - scan.start
+    start2, end2 = scan.start**2, scan.end**2
+    span2 = np.maximum(start2, end2) - np.where((scan.start < 0) & (scan.end > 0), 0.0,
+                                                np.minimum(start2, end2))
+    e1_lo = scan.e1_start - scan.slope * span1
+    e1_hi = scan.e1_start + scan.slope * span1
+    e2_lo = scan.e2_start - scan.slope * span2
     upper = np.maximum(chi2_objective(e1_lo, 0.0, lam, mean_clip),
                        chi2_objective(e1_hi, 0.0, lam, mean_clip))
     upper -= 0.25 / lam * (e2_lo if second_clip is None else np.clip(e2_lo, *second_clip))
     rows, blocks = np.nonzero(upper > best[:, None])
-    if rows.size == 0:
-        return best
-    # Refine: exact coefficients on every segment of the surviving (factor, block) pairs; the
-    # block's last segment ends at the next block start.
-    uniq, inverse = np.unique(blocks, return_inverse=True)
-    wb = blocks_.columns(uniq)[rows, inverse]  # (P, 16)
-    ab = al3[blocks]
-    seg_a = p1[rows, blocks, None] + np.cumsum(wb * ab, axis=1)
-    seg_c = p2[rows, blocks, None] + np.cumsum(wb * ab * ab, axis=1)
-    seg_b = total[rows] - (p0[rows, blocks, None] + np.cumsum(wb, axis=1))
-    last = lambda x: np.concatenate([x, x[:, -1:]], axis=1)  # noqa: E731
-    seg_al = np.concatenate([ab, end[blocks, None]], axis=1)
-    vals = segments_max(last(seg_a), last(seg_b), last(seg_c), seg_al, lam, mean_clip,
-                        second_clip)
-    np.maximum.at(best, rows, vals)
+    if rows.size:
+        a, b, c, al = scan.segments(rows, blocks)
+        np.maximum.at(best, rows, segments_max(a, b, c, al, lam, mean_clip, second_clip))
+    return best
+
+
+def tv_ball_max(E: ExpectationOperator, v, rho) -> np.ndarray:
+    """``max_k E_i([V]_alpha_k) - rho_i alpha_k`` over every breakpoint ``alpha_k`` (the
+    piecewise-linear TV-ball dual without its constant), by the same branch and bound."""
+    scan = BlockScan(E, v)
+    f_start = scan.e1_start - rho[:, None] * scan.start
+    best = np.maximum(f_start.max(axis=1), scan.e1_top - rho * scan.top)
+    # d/dalpha (E1 - rho alpha) = B - rho <= slope - rho inside a block.
+    upper = f_start + (scan.end - scan.start) * np.maximum(scan.slope - rho[:, None], 0.0)
+    rows, blocks = np.nonzero(upper > best[:, None])
+    if rows.size:
+        a, b, _, al = scan.segments(rows, blocks)
+        vals = (a + (b - rho[rows, None]) * al).max(axis=1)
+        np.maximum.at(best, rows, vals)
     return best

@@ -140,7 +140,23 @@ TIMING_ALGORITHMS = [
 
 def timing_task(seq, *, trajectories, features, repeats, settings):
     """Fit every algorithm ``repeats`` times on one put-option dataset; rows hold the mean
-    wall-clock time of a fit (after one untimed warm-up fit)."""
+    wall-clock time of a fit (after one untimed warm-up fit).
+
+    BLAS runs with ``settings["blas_threads"]`` threads (default 1, 0 leaves it alone): on a
+    shared 2-core machine, multi-threaded OpenBLAS busy-waits when the cores are taken and
+    turns millisecond fits into seconds; one thread gives every algorithm the same, stable
+    conditions.
+    """
+    threads = settings.get("blas_threads", 1)
+    if threads:
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=threads, user_api="blas"):
+            return _timed_fits(seq, trajectories, features, repeats, settings)
+    return _timed_fits(seq, trajectories, features, repeats, settings)
+
+
+def _timed_fits(seq, trajectories, features, repeats, settings):
     rng = np.random.default_rng(seq)
     env = _env(settings, d=features)
     data = env.collect(trajectories, seed=rng)
@@ -162,7 +178,7 @@ def timing_task(seq, *, trajectories, features, repeats, settings):
 def _timing_figure(name, axis, grid_key, fixed_key, claim):
     defaults = {**{k: PUT_DEFAULTS[k] for k in ("p0", "horizon", "strike", "anchor_span",
                                                   "beta", "gamma", "penalty")},
-                "repeats": 5}
+                "repeats": 5, "blas_threads": 1}
     if axis == "trajectories":
         defaults.update({grid_key: [1000, 5000, 10000], fixed_key: 30})
     else:
