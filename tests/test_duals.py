@@ -293,3 +293,15 @@ def test_chi2_method_is_checked():
     E = FactorExpectation(np.array([[1.0]]))
     with pytest.raises(ValueError, match="method must be"):
         chi2_regularized(E, np.array([1.0]), 1.0, method="fast")
+
+
+def test_chi2_flat_segment_touching_a_clip_bound_is_silent_and_exact():
+    # B = 0 on the segment and E1 = -0.0 / +0.0 at its ends: a "crossing" of the clip bound 0
+    # whose candidate is 0/0. It must neither warn (warnings are errors here) nor change g.
+    from r2pvi.duals.piecewise import segments_max
+
+    a = np.array([[-0.0, 0.0]])
+    b = np.zeros((1, 2))
+    c = np.ones((1, 2))
+    got = segments_max(a, b, c, np.array([1.0, 2.0]), 0.5, (0.0, 3.0), (0.0, 9.0))
+    assert got[0] == pytest.approx(0.0 + (0.0 - 1.0) / 2.0)

@@ -88,30 +88,33 @@ def segments_max(a, b, c, alphas, lam, mean_clip=None, second_clip=None, *, scra
             return None
         return _sign_changes(np.subtract(f, level, out=tmp("chi2.shifted")))
 
-    candidates = []
-    # Stationary point, no clip active: g' = B (1 + (E1 - alpha) / (2 lam)) = 0, i.e. where
-    # E1 - alpha + 2 lam (linear on the segment) changes sign.
-    i, k = _sign_changes(np.subtract(e1, al - 2.0 * lam, out=tmp("chi2.shifted")))
-    candidates.append((i, k, (seg_a[i, k] + 2.0 * lam) / (1.0 - seg_b[i, k])))
-    if second_clip is not None:
-        # Stationary point with E2 clipped (constant): g' = B (1 + E1 / (2 lam)) = 0.
-        found = crossings_of("e1", e1, -2.0 * lam)
-        if found is not None:
-            i, k = found
-            candidates.append((i, k, -(seg_a[i, k] + 2.0 * lam) / seg_b[i, k]))
-        for bound in second_clip:  # E2 = C + B alpha^2 reaches a clip bound
-            found = crossings_of("e2", e2, bound)
+    # A segment with B = 0 is flat; opposite-signed zeros at its ends can still flag a
+    # "crossing", whose candidate 0/0 is then clamped into the segment: harmless, silenced.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        candidates = []
+        # Stationary point, no clip active: g' = B (1 + (E1 - alpha) / (2 lam)) = 0, i.e. where
+        # E1 - alpha + 2 lam (linear on the segment) changes sign.
+        i, k = _sign_changes(np.subtract(e1, al - 2.0 * lam, out=tmp("chi2.shifted")))
+        candidates.append((i, k, (seg_a[i, k] + 2.0 * lam) / (1.0 - seg_b[i, k])))
+        if second_clip is not None:
+            # Stationary point with E2 clipped (constant): g' = B (1 + E1 / (2 lam)) = 0.
+            found = crossings_of("e1", e1, -2.0 * lam)
             if found is not None:
                 i, k = found
-                root = np.sqrt(np.maximum((bound - seg_c[i, k]) / seg_b[i, k], 0.0))
-                side = np.where(left[i, k] + right[i, k] >= 0.0, 1.0, -1.0)
-                candidates.append((i, k, side * root))
-    if mean_clip is not None:
-        for bound in mean_clip:  # E1 = A + B alpha reaches a clip bound
-            found = crossings_of("e1", e1, bound)
-            if found is not None:
-                i, k = found
-                candidates.append((i, k, (bound - seg_a[i, k]) / seg_b[i, k]))
+                candidates.append((i, k, -(seg_a[i, k] + 2.0 * lam) / seg_b[i, k]))
+            for bound in second_clip:  # E2 = C + B alpha^2 reaches a clip bound
+                found = crossings_of("e2", e2, bound)
+                if found is not None:
+                    i, k = found
+                    root = np.sqrt(np.maximum((bound - seg_c[i, k]) / seg_b[i, k], 0.0))
+                    side = np.where(left[i, k] + right[i, k] >= 0.0, 1.0, -1.0)
+                    candidates.append((i, k, side * root))
+        if mean_clip is not None:
+            for bound in mean_clip:  # E1 = A + B alpha reaches a clip bound
+                found = crossings_of("e1", e1, bound)
+                if found is not None:
+                    i, k = found
+                    candidates.append((i, k, (bound - seg_a[i, k]) / seg_b[i, k]))
     for i, k, alpha in candidates:
         if i.size == 0:
             continue
