@@ -31,8 +31,10 @@ def line_panels(panels, *, xlabel, ylabel, title=None, logx=False, logy=False, n
                              constrained_layout=True)
     for ax, (panel_title, series) in zip(axes.flat, panels, strict=False):
         for label, (x, mean, std) in series.items():
-            line = ax.plot(x, mean, marker="o", markersize=3, label=label)[0]
-            if std is not None:
+            exact = "(exact)" in label  # exact-evaluation series: dashed, no band
+            line = ax.plot(x, mean, marker="" if exact else "o", markersize=3, label=label,
+                           linestyle="--" if exact else "-")[0]
+            if std is not None and not exact:
                 lo = [m - s for m, s in zip(mean, std, strict=True)]
                 hi = [m + s for m, s in zip(mean, std, strict=True)]
                 ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15, linewidth=0)
