@@ -70,9 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
         "NAME.csv and NAME.json (one row per setting x replication, with the configuration and "
         "library version), NAME.png and NAME.pdf, and print a summary table. Settings come from "
         "the figure's defaults (the paper's), then --config FILE.toml, then the flags below and "
-        "--set key=value. Figures: fig1a fig1b fig1c fig1d fig2a fig2b va.",
+        "--set key=value. Figures: fig1a fig1b fig1c fig1d fig2a fig2b va (the paper's) and "
+        "rates bound-check (its theory).",
     )
-    rep.add_argument("figure", help="figure name (fig1a ... va) or 'all'")
+    rep.add_argument("figure", help="figure name (fig1a ... va, rates, bound-check) or 'all'")
     rep.add_argument("--out", default="results", help="output directory (default: results)")
     rep.add_argument("--config", help="TOML file with settings (top level or [figure] tables)")
     rep.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -86,6 +86,11 @@ class LinearEstimator:
 
     # ------------------------------------------------------------------ validation
     def _validate_common(self, dataset: OfflineDataset) -> dict:
+        if isinstance(self.beta, str):
+            raise ValueError(
+                f"{type(self).__name__} takes a number for beta, got {self.beta!r}; "
+                "beta='theory' (the paper's theorem) exists for R2PVI with 'tv', 'kl' or 'chi2'"
+            )
         p: dict = {
             "beta": check_scalar(self.beta, "beta", low=0.0),
             "gamma": check_scalar(self.gamma, "gamma", low=0.0, low_inclusive=False),

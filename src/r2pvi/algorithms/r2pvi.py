@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import copy
+import math
+
 from .._validation import check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
 from ..duals.regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
@@ -10,6 +13,8 @@ from ._params import check_flag, check_v_min
 from ._params import floor_value as _floor
 from ._variance import VarianceAwareMixin
 from .base import LinearEstimator
+
+THEORY = "theory"
 
 __all__ = ["R2PVI", "TVRule", "KLRule", "Chi2Rule", "FDivergenceRule"]
 
@@ -72,8 +77,16 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         Algorithm 1 with a bracketed 1-D solver per dimension.
     lam : float, default 1.0
         Regularization strength ``lambda > 0``; smaller is more robust.
-    beta : float, default 1.0
-        Scale of the pessimism penalty (>= 0).
+    beta : float or "theory", default 1.0
+        Scale of the pessimism penalty (>= 0). ``"theory"`` takes the beta of the paper's
+        instance-dependent upper-bound theorem for the dataset's d, H and K and ``delta``
+        (:func:`r2pvi.theory.theoretical_beta`), so that with probability at least
+        ``1 - delta`` ``SubOpt <= 2 beta * (uncertainty term)``
+        (:func:`r2pvi.theory.uncertainty_term`). The theorem covers the closed forms
+        "tv", "kl" and "chi2" with its own setting: ``gamma = 1``, the "l1" penalty,
+        rewards in ``[0, 1]`` (``r_max = 1``) and no variance weighting; anything else
+        raises ``ValueError`` at ``fit``. This beta is very large (hundreds to millions):
+        the learned policy is then extremely pessimistic.
     gamma : float, default 1.0
         Ridge parameter (> 0).
     penalty : {"l1", "l2", "elliptical"}, default "l1"
@@ -95,6 +108,9 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         variance ``sigma_h^2 = max{1, [phi^T z2]_[0,H^2] - ([phi^T z1]_[0,H])^2}`` weights a
         second pass (weighted Gram matrix, targets and penalty); see
         :func:`~r2pvi.algorithms._variance.variance_weights`.
+    delta : float in (0, 1), default 0.05
+        Confidence of ``beta="theory"`` (the theorem's bound holds with probability at least
+        ``1 - delta``); unused otherwise.
 
     Attributes
     ----------
@@ -105,6 +121,8 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         Lower Cholesky factors of ``Lambda_h``.
     gram_inv_diag_ : ndarray (H, d)
         ``diag(Lambda_h^{-1})`` (the d-rectangular penalty's ingredients).
+    beta_ : float
+        The penalty scale used: ``beta``, or the theorem's value for ``beta="theory"``.
 
     Examples
     --------
@@ -118,6 +136,8 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
     >>> est = R2PVI("kl", lam=0.5, beta=0.1).fit(ds)
     >>> est.weights_.shape, est.act(next_phi[:3, 0], h=1).shape
     ((3, 4), (3,))
+    >>> round(R2PVI("tv", lam=0.5, beta="theory").fit(ds).beta_, 1)  # 16 H d sqrt(xi_TV)
+    1282.7
     """
 
     def __init__(
@@ -132,6 +152,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         reward_weights=None,
         r_max=1.0,
         variance_aware=False,
+        delta=0.05,
     ):
         self.divergence = divergence
         self.lam = lam
@@ -142,6 +163,18 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         self.reward_weights = reward_weights
         self.r_max = r_max
         self.variance_aware = variance_aware
+        self.delta = delta
+
+    def _validate_common(self, dataset):
+        beta = self.beta
+        if isinstance(beta, str):
+            if beta != THEORY:
+                raise ValueError(f"beta must be a number >= 0 or 'theory', got {beta!r}")
+            # Validate the other shared parameters as usual; _validate_extra sets beta.
+            shadow = copy.copy(self)
+            shadow.beta = 0.0
+            return super(R2PVI, shadow)._validate_common(dataset)
+        return super()._validate_common(dataset)
 
     def _validate_extra(self, dataset):
         lam = check_scalar(self.lam, "lam", low=0.0, low_inclusive=False)
@@ -163,7 +196,50 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
                 "variance_aware=True is only defined for divergence='tv' (VA-R2PVI-TV), got "
                 f"divergence={self.divergence!r}; use variance_aware=False"
             )
-        return {"lam": lam, "v_min": v_min, "divergence": div, "variance_aware": variance_aware}
+        delta = check_scalar(self.delta, "delta", low=0.0, high=1.0, low_inclusive=False)
+        if delta >= 1.0:
+            raise ValueError(f"delta must lie in (0, 1), got {delta}")
+        extra = {"lam": lam, "v_min": v_min, "divergence": div,
+                 "variance_aware": variance_aware}
+        if isinstance(self.beta, str):
+            extra["beta"] = self._theory_beta(dataset, div, lam, delta, variance_aware)
+        return extra
+
+    def _theory_beta(self, dataset, div, lam, delta, variance_aware) -> float:
+        """beta of the instance-dependent upper-bound theorem, after checking its setting."""
+        from ..theory.bounds import theoretical_beta
+
+        if not (isinstance(div, str) and div in _CLOSED_FORMS):
+            raise ValueError(
+                "beta='theory' is the theorem's beta for divergence 'tv', 'kl' or 'chi2' "
+                f"(closed forms), got divergence={self.divergence!r}; pass a numeric beta"
+            )
+        gamma, r_max = float(self.gamma), float(self.r_max)
+        problems = [
+            text for bad, text in (
+                (variance_aware, "variance_aware=False"),
+                (self.penalty != "l1", "penalty='l1'"),
+                (gamma != 1.0, "gamma=1"),
+                (r_max != 1.0, "r_max=1 (rewards in [0, 1])"),
+            ) if bad
+        ]
+        if problems:
+            raise ValueError(
+                "beta='theory' is only defined in the theorem's setting; it needs "
+                + ", ".join(problems) + "; pass a numeric beta otherwise"
+            )
+        beta = theoretical_beta(div, dataset.n_features, dataset.horizon,
+                                dataset.n_trajectories, lam, delta)
+        if not math.isfinite(beta):
+            raise ValueError(
+                f"the theoretical beta of R2PVI-KL overflows for lam = {lam} (it grows like "
+                f"e^(H/lam), H = {dataset.horizon}); use a larger lam or a numeric beta"
+            )
+        return beta
+
+    def _set_fitted(self, model, params, n_actions):
+        super()._set_fitted(model, params, n_actions)
+        self.beta_ = float(params["beta"])
 
     def _make_rule(self, params):
         div, lam, v_min = params["divergence"], params["lam"], params["v_min"]

@@ -1,6 +1,6 @@
 """The duals of the paper, written once against a linear expectation operator."""
 
-from .constrained import kl_constrained, tv_constrained
+from .constrained import chi2_constrained, kl_constrained, tv_constrained
 from .fdivergence import (
     BUILTIN_DIVERGENCES,
     CHI2,
@@ -40,4 +40,5 @@ __all__ = [
     "tv_regularized",
     "tv_constrained",
     "kl_constrained",
+    "chi2_constrained",
 ]

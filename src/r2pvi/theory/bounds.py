@@ -11,7 +11,7 @@ import math
 
 from .._validation import check_scalar
 
-__all__ = ["theoretical_beta", "xi", "instance_independent_bound"]
+__all__ = ["theoretical_beta", "xi", "instance_dependent_bound", "instance_independent_bound"]
 
 _DIVERGENCES = ("tv", "kl", "chi2")
 
@@ -67,6 +67,24 @@ def theoretical_beta(divergence: str, d: int, H: int, K: int, lam: float,
             return math.inf
         return 16.0 * d * lam * math.exp(H / lam) * math.sqrt(H / lam + x)
     return 8.0 * d * H * (1.0 + 3.0 * H / (4.0 * lam)) * math.sqrt(x)
+
+
+def instance_dependent_bound(divergence: str, d: int, H: int, K: int, lam: float,
+                             delta: float, term: float) -> float:
+    """The theorem's bound ``2 beta * term`` on ``SubOpt(pi_hat, s, lam)``.
+
+    Paper, Thm. instance-dependent upper bounds; ``beta`` from :func:`theoretical_beta` and
+    ``term`` the uncertainty term (:func:`r2pvi.theory.uncertainty_term`) at the same ``s``.
+
+    Examples
+    --------
+    >>> from r2pvi.theory import instance_dependent_bound, theoretical_beta
+    >>> b = instance_dependent_bound("chi2", d=4, H=3, K=100, lam=1.0, delta=0.05, term=0.1)
+    >>> b == 2 * theoretical_beta("chi2", 4, 3, 100, 1.0, 0.05) * 0.1
+    True
+    """
+    t = check_scalar(term, "term", low=0.0)
+    return 2.0 * theoretical_beta(divergence, d, H, K, lam, delta) * t
 
 
 def instance_independent_bound(divergence: str, d: int, H: int, K: int, lam: float,
