@@ -92,6 +92,7 @@ class OfflineDataset:
         self._next_values = _next_values  # (H, K, A) or None when no value is known
         self._extras = dict(_extras or {})
         self._nonnegative: bool | None = None
+        self._nonnegative_phi: bool | None = None
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -313,6 +314,13 @@ class OfflineDataset:
         if self._nonnegative is None:
             self._nonnegative = bool((self._next_phi >= 0).all())
         return self._nonnegative
+
+    @property
+    def nonnegative_features(self) -> bool:
+        """Whether every taken-action feature is >= 0 (computed once, then cached)."""
+        if self._nonnegative_phi is None:
+            self._nonnegative_phi = bool((self._phi >= 0).all())
+        return self._nonnegative_phi
 
     @property
     def has_known_values(self) -> bool:

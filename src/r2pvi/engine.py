@@ -178,6 +178,7 @@ def backward_induction(
     """
     H, d = dataset.horizon, dataset.n_features
     nonneg = dataset.nonnegative_next_features
+    nonneg_phi = dataset.nonnegative_features
     weights = np.zeros((H, d))
     thetas = np.zeros((H, d))
     chols = np.zeros((H, d, d))
@@ -189,7 +190,7 @@ def backward_induction(
             phi, rewards, next_phi, next_known = dataset.step(h)
             sw = None if sample_weights is None else sample_weights[h]
             chol = cholesky_gram(phi, gamma, sw)
-            E = RidgeExpectation(phi, chol, sw)
+            E = RidgeExpectation(phi, chol, sw, nonneg_phi)
             theta = E(rewards) if reward_weights is None else reward_weights[h]
             if h == H - 1:
                 w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for every divergence

@@ -86,21 +86,23 @@ class ExpectationOperator:
         weights = self.weight_columns(src, out=buffer(key, (self.n_dims, src.size)))
         return alphas, weights, m
 
-    def sorted_blocks(self, v: np.ndarray, breakpoints_extra=()) -> SortedBlocks:
+    def sorted_blocks(self, v: np.ndarray, breakpoints_extra=(), moments: int = 3
+                      ) -> SortedBlocks:
         """Block sums of the sorted weight columns, for branch and bound over breakpoints.
 
         Returns :class:`SortedBlocks` with ``alphas (p,)`` as in :meth:`sorted_weights` and,
-        for every block of 16 consecutive sorted points, the sums of ``M``, ``M v``, ``M v^2``
-        and an upper bound on the sum of ``|M|`` (each ``(d, p/16)``), plus a function giving
-        the exact weight columns of chosen blocks.
+        for every block of 16 consecutive sorted points, the sums of ``M``, ``M v`` and (with
+        ``moments=3``) ``M v^2``, and an upper bound on the sum of ``|M|`` (each ``(d, p/16)``),
+        plus a function giving the exact weight columns of chosen blocks.
         """
         alphas, weights, m = self.sorted_weights(v, breakpoints_extra)
         d, p = weights.shape
         w3 = weights.reshape(d, p // BLOCK, BLOCK)
-        powers = _block_powers(alphas)  # (nb, 3, 16): 1, alpha, alpha^2
+        powers = _block_powers(alphas, moments)  # (nb, moments, 16): 1, alpha, alpha^2
         sums = np.einsum("dbk,bjk->jdb", w3, powers)
         sabs = np.abs(w3).sum(axis=2)
-        return SortedBlocks(alphas, m, sums[0], sums[1], sums[2], sabs, lambda blk: w3[:, blk])
+        s2 = sums[2] if moments == 3 else None
+        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, lambda blk: w3[:, blk])
 
     def truncation_cumulants(self, v: np.ndarray, breakpoints_extra=()) -> TruncationCumulants:
         """Expectations of the truncated values ``[V]_alpha = min(V, alpha)`` for every alpha.
@@ -172,10 +174,11 @@ def sort_breakpoints(v, extra=()) -> tuple[np.ndarray, np.ndarray, int]:
     return alphas, src, m
 
 
-def _block_powers(alphas: np.ndarray) -> np.ndarray:
-    """``(nb, 3, 16)``: 1, alpha and alpha^2 of every sorted point, by block."""
+def _block_powers(alphas: np.ndarray, moments: int = 3) -> np.ndarray:
+    """``(nb, moments, 16)``: 1, alpha (and alpha^2) of every sorted point, by block."""
     a3 = alphas.reshape(-1, BLOCK)
-    return np.stack([np.ones_like(a3), a3, a3 * a3], axis=1)
+    rows = [np.ones_like(a3), a3, a3 * a3][:moments]
+    return np.stack(rows, axis=1)
 
 
 class SortedBlocks:
@@ -241,10 +244,12 @@ class RidgeExpectation(ExpectationOperator):
 
     nonnegative = False
 
-    def __init__(self, phi: np.ndarray, chol: np.ndarray, weights: np.ndarray | None = None):
+    def __init__(self, phi: np.ndarray, chol: np.ndarray, weights: np.ndarray | None = None,
+                 nonnegative_features: bool | None = None):
         self.phi = phi
         self.chol = chol
         self.weights = weights
+        self.nonnegative_features = nonnegative_features  # phi >= 0 (None: check when needed)
         self.n_points, self.n_dims = phi.shape
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
@@ -276,28 +281,33 @@ class RidgeExpectation(ExpectationOperator):
     def _sorted_features(self, v, breakpoints_extra):
         """Sorted breakpoints and the matching (weighted) feature rows, zero for extras/padding."""
         alphas, src, m = sort_breakpoints(v, breakpoints_extra)
-        xs = np.take(self.phi, np.maximum(src, 0), axis=0, mode="clip",
+        # mode="clip" maps the -1 of extra points and padding to row 0 (zeroed below) and,
+        # unlike the default, writes straight into the buffer.
+        xs = np.take(self.phi, src, axis=0, mode="clip",
                      out=buffer("ridge.xs", (src.size, self.n_dims)))
         if self.weights is not None:
-            xs *= self.weights[np.maximum(src, 0), None]
+            xs *= np.take(self.weights, src, mode="clip")[:, None]
         missing = src < 0
         if missing.any():
             xs[missing] = 0.0
         return alphas, xs, m
 
-    def sorted_blocks(self, v: np.ndarray, breakpoints_extra=()) -> SortedBlocks:
+    def sorted_blocks(self, v: np.ndarray, breakpoints_extra=(), moments: int = 3
+                      ) -> SortedBlocks:
         # M = Lambda^{-1} X^T is linear in the features: sum each block in feature space
         # (one batched product), then map the (nb, d) sums by Lambda^{-1}. |M| is bounded by
         # |Lambda^{-1}| |X|; exact columns are formed only for the blocks asked for.
         alphas, xs, m = self._sorted_features(v, breakpoints_extra)
         d = self.n_dims
         x3 = xs.reshape(-1, BLOCK, d)
-        fsum = np.matmul(_block_powers(alphas), x3)  # (nb, 3, d)
+        fsum = np.matmul(_block_powers(alphas, moments), x3)  # (nb, moments, d)
         linv = self.chol_inverse
         nb = fsum.shape[0]
-        # (nb * 3, d) @ Lambda^{-1} as one GEMM (Lambda^{-1} is symmetric), then (3, d, nb).
-        sums = (fsum.reshape(-1, d) @ (linv.T @ linv)).reshape(nb, 3, d).transpose(1, 2, 0)
-        nonneg = bool((xs >= 0).all())
+        # (nb * moments, d) @ Lambda^{-1} as one GEMM (it is symmetric), then (moments, d, nb).
+        sums = (fsum.reshape(-1, d) @ (linv.T @ linv)).reshape(nb, moments, d).transpose(1, 2, 0)
+        if self.nonnegative_features is None:
+            self.nonnegative_features = bool((self.phi >= 0).all())
+        nonneg = self.nonnegative_features and self.weights is None
         fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)
         sabs = np.abs(linv.T @ linv) @ fabs.T
 
@@ -305,7 +315,8 @@ class RidgeExpectation(ExpectationOperator):
             cols = x3[blocks].reshape(-1, d)  # (len * 16, d)
             return (linv.T @ (linv @ cols.T)).reshape(d, len(blocks), BLOCK)
 
-        return SortedBlocks(alphas, m, sums[0], sums[1], sums[2], sabs, columns)
+        s2 = sums[2] if moments == 3 else None
+        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, columns)
 
     def rows(self, dims=None) -> np.ndarray:
         xw = self.phi if self.weights is None else self.phi * self.weights[:, None]

@@ -146,11 +146,12 @@ class BlockScan:
     coefficients of the pairs whose bound beats the best value found.
     """
 
-    def __init__(self, E: ExpectationOperator, v, extra=()):
-        sb = E.sorted_blocks(v, extra)
+    def __init__(self, E: ExpectationOperator, v, extra=(), second_moment: bool = True):
+        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2)
         self.alphas = sb.alphas
         s0, s1, s2 = sb.s0, sb.s1, sb.s2
-        self._p0, self._p1, self._p2 = (np.cumsum(s, axis=1) - s for s in (s0, s1, s2))
+        self._p0, self._p1 = (np.cumsum(s, axis=1) - s for s in (s0, s1))
+        self._p2 = np.cumsum(s2, axis=1) - s2 if second_moment else None
         self._total = s0.sum(axis=1, keepdims=True)
         tail = self._total - self._p0  # weight of the points at or after each block start
         self._al3 = sb.alphas.reshape(-1, BLOCK)
@@ -158,9 +159,10 @@ class BlockScan:
         self.end = np.append(self.start[1:], sb.alphas[-1])
         self.top = float(sb.alphas[-1])
         self.e1_start = self._p1 + tail * self.start
-        self.e2_start = self._p2 + tail * self.start**2
         self.e1_top = s1.sum(axis=1)
-        self.e2_top = s2.sum(axis=1)
+        if second_moment:
+            self.e2_start = self._p2 + tail * self.start**2
+            self.e2_top = s2.sum(axis=1)
         self.slope = np.abs(tail - s0) + sb.sabs
         self._columns = sb.columns
 
@@ -168,15 +170,18 @@ class BlockScan:
         """Exact coefficients ``(a, b, c, alphas)``, each ``(P, 17)``, on every segment of the
         (factor, block) pairs ``(rows, blocks)``: on segment k ``E1 = a_k + b_k alpha`` and
         ``E2 = c_k + b_k alpha^2``; the last column is the next block's start, reached by the
-        block's last segment (its coefficients repeated)."""
+        block's last segment (its coefficients repeated). ``c`` is None without the second
+        moment."""
         uniq, inverse = np.unique(blocks, return_inverse=True)
         wb = self._columns(uniq)[rows, inverse]  # (P, 16) exact weights
         ab = self._al3[blocks]
         a = self._p1[rows, blocks, None] + np.cumsum(wb * ab, axis=1)
-        c = self._p2[rows, blocks, None] + np.cumsum(wb * ab * ab, axis=1)
         b = self._total[rows] - (self._p0[rows, blocks, None] + np.cumsum(wb, axis=1))
         last = lambda x: np.concatenate([x, x[:, -1:]], axis=1)  # noqa: E731
         al = np.concatenate([ab, self.end[blocks, None]], axis=1)
+        if self._p2 is None:
+            return last(a), last(b), None, al
+        c = self._p2[rows, blocks, None] + np.cumsum(wb * ab * ab, axis=1)
         return last(a), last(b), last(c), al
 
 
@@ -208,7 +213,7 @@ def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=No
 def tv_ball_max(E: ExpectationOperator, v, rho) -> np.ndarray:
     """``max_k E_i([V]_alpha_k) - rho_i alpha_k`` over every breakpoint ``alpha_k`` (the
     piecewise-linear TV-ball dual without its constant), by the same branch and bound."""
-    scan = BlockScan(E, v)
+    scan = BlockScan(E, v, second_moment=False)
     f_start = scan.e1_start - rho[:, None] * scan.start
     best = np.maximum(f_start.max(axis=1), scan.e1_top - rho * scan.top)
     # d/dalpha (E1 - rho alpha) = B - rho <= slope - rho inside a block.
