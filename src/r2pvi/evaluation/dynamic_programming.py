@@ -34,6 +34,7 @@ __all__ = [
     "greedy_policy",
     "optimal_policy",
     "regularized_step",
+    "finite_backward",
 ]
 
 #: ``step(h, E, v) -> w``: the weights of step ``h`` from the next values ``v`` over all states.
@@ -50,11 +51,18 @@ def _check_finite_env(env, func: str) -> FiniteLinearMDP:
     return env
 
 
-def _backward(env: FiniteLinearMDP, step: StepWeights, policy) -> tuple[np.ndarray, np.ndarray]:
-    """``(Q (H, S, A), V (H+1, S))`` of the backward induction with weights ``step(h, E, v)``."""
+def finite_backward(env: FiniteLinearMDP, step: StepWeights, policy=None, rewards=None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """``(Q (H, S, A), V (H+1, S))`` of the backward induction with weights ``step(h, E, v)``.
+
+    ``rewards (H, S, A)`` defaults to the environment's reward table; other per-step costs
+    (e.g. the penalty bonuses of :func:`r2pvi.theory.uncertainty_values`) reuse the same loop.
+    ``policy`` None maximizes over actions; otherwise any form of
+    :func:`r2pvi.envs.policies.policy_table`.
+    """
     H, S, A = env.horizon, env.n_states, env.n_actions
     pi = None if policy is None else policy_table(env, policy)
-    rewards = env.reward_table
+    rewards = env.reward_table if rewards is None else rewards
     Q = np.empty((H, S, A))
     V = np.zeros((H + 1, S))
     for h in range(H - 1, -1, -1):
@@ -108,7 +116,7 @@ def nominal_values(env, policy=None) -> tuple[np.ndarray, np.ndarray]:
     (1.62425, 15)
     """
     env = _check_finite_env(env, "nominal_values")
-    return _backward(env, lambda h, E, v: E(v), policy)
+    return finite_backward(env, lambda h, E, v: E(v), policy)
 
 
 def robust_values(env, divergence, lam, policy=None) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +142,7 @@ def robust_values(env, divergence, lam, policy=None) -> tuple[np.ndarray, np.nda
     ((4, 5), 0.29985)
     """
     env = _check_finite_env(env, "robust_values")
-    return _backward(env, regularized_step(divergence, lam), policy)
+    return finite_backward(env, regularized_step(divergence, lam), policy)
 
 
 def constrained_values(env, divergence, rho, policy=None) -> tuple[np.ndarray, np.ndarray]:
@@ -166,7 +174,7 @@ def constrained_values(env, divergence, rho, policy=None) -> tuple[np.ndarray, n
             return dual(E, v, radii[h], v_min=float(np.min(v)))
         return dual(E, v, radii[h])
 
-    return _backward(env, step, policy)
+    return finite_backward(env, step, policy)
 
 
 def _as_radii(rho, H: int, d: int) -> np.ndarray:

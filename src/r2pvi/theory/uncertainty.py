@@ -30,7 +30,6 @@ import numpy as np
 from .._validation import as_float_array, check_scalar
 from ..duals.constrained import chi2_constrained, kl_constrained, tv_constrained
 from ..duals.fdivergence import CHI2, KL, TV
-from ..duals.operators import FactorExpectation
 from ..envs.finite import FiniteLinearMDP
 from ..envs.policies import policy_table
 
@@ -200,6 +199,7 @@ def uncertainty_values(env, estimator, divergence, lam, *, policy=None) -> np.nd
     ((4, 5), np.float64(0.3))
     """
     from ..evaluation import optimal_policy, robust_values
+    from ..evaluation.dynamic_programming import finite_backward
 
     env = _check_env(env)
     name = _divergence_name(divergence)
@@ -208,12 +208,9 @@ def uncertainty_values(env, estimator, divergence, lam, *, policy=None) -> np.nd
     _, v_star = robust_values(env, name, lam)
     radii = admissible_radii(v_star, lam)
     pi = policy_table(env, optimal_policy(env, name, lam) if policy is None else policy)
-    H, S = env.horizon, env.n_states
-    U = np.zeros((H + 1, S))
-    for h in range(H - 1, -1, -1):
-        w = ball_sup(name, FactorExpectation(env.mu[h]), U[h + 1], radii[h])
-        q = costs[h] + env.features(h) @ w
-        U[h] = np.einsum("sa,sa->s", pi[h], q)
+    # The evaluation layer's backward induction with the bonuses as costs and the sup over
+    # each factor's ball as the step weights.
+    _, U = finite_backward(env, lambda h, E, v: ball_sup(name, E, v, radii[h]), pi, costs)
     return U
 
 
