@@ -56,3 +56,20 @@ def check_choice(value, name: str, choices) -> str:
     if not isinstance(value, str) or value not in choices:
         raise ValueError(f"{name} must be one of {sorted(choices)}, got {value!r}")
     return value
+
+
+def as_index_array(x, name: str, n: int, ndim: int | None = None) -> np.ndarray:
+    """Integer indices in ``[0, n)`` as int64 (floats with integer values are accepted)."""
+    arr = np.asarray(x)
+    if arr.dtype == bool or arr.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must be integer indices, got dtype {arr.dtype}")
+    if arr.dtype.kind == "f" and (
+        not np.all(np.isfinite(arr)) or not np.all(arr == np.round(arr))
+    ):
+        raise TypeError(f"{name} must be integer indices, got non-integer values")
+    arr = arr.astype(np.int64)
+    if ndim is not None and arr.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
+    if arr.size and ((arr < 0) | (arr >= n)).any():
+        raise ValueError(f"{name} must lie in [0, {n}), got values from {arr.min()} to {arr.max()}")
+    return arr

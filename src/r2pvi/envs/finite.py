@@ -6,7 +6,7 @@ import numbers
 
 import numpy as np
 
-from .._validation import as_float_array, check_scalar
+from .._validation import as_float_array, as_index_array, check_scalar
 from ..data import OfflineDataset
 from ._dataset import Trajectories, dataset_with_transitions
 from ._sampling import as_generator, check_count, sample_categorical
@@ -404,15 +404,7 @@ def _as_states(states, n_states: int, name: str) -> tuple[int, ...]:
 
 
 def _as_index_array(x, n: int, name: str) -> np.ndarray:
-    arr = np.asarray(x)
-    if arr.dtype == bool or arr.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be integer indices, got dtype {arr.dtype}")
-    if arr.dtype.kind == "f":
-        if not np.all(np.isfinite(arr)) or not np.all(arr == np.round(arr)):
-            raise TypeError(f"{name} must be integer indices, got non-integer values")
-    arr = arr.astype(np.int64)
+    arr = as_index_array(x, name, n)
     if arr.ndim != 2:
         raise ValueError(f"{name} must have shape (K, H), got {arr.shape}")
-    if arr.size and ((arr < 0) | (arr >= n)).any():
-        raise ValueError(f"{name} must lie in [0, {n}), got values from {arr.min()} to {arr.max()}")
     return arr

@@ -17,6 +17,8 @@ import numbers
 
 import numpy as np
 
+from .._validation import as_index_array
+
 __all__ = ["policy_table", "is_estimator"]
 
 
@@ -115,17 +117,7 @@ def policy_table(env, policy, name: str = "policy") -> np.ndarray:
 
 
 def _as_actions(arr: np.ndarray, n_actions: int, name: str) -> np.ndarray:
-    arr = np.asarray(arr)
-    if arr.dtype == bool or arr.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must give integer action indices, got dtype {arr.dtype}")
-    if arr.dtype.kind == "f":
-        if not np.all(np.isfinite(arr)) or not np.all(arr == np.round(arr)):
-            raise TypeError(f"{name} must give integer action indices, got non-integer values")
-        arr = arr.astype(np.int64)
-    if ((arr < 0) | (arr >= n_actions)).any():
-        raise ValueError(f"{name} action indices must lie in [0, {n_actions}), got {arr.min()}"
-                         f"..{arr.max()}")
-    return arr.astype(np.int64)
+    return as_index_array(arr, f"{name} action indices", n_actions)
 
 
 def _one_hot(actions: np.ndarray, n_actions: int) -> np.ndarray:
