@@ -305,3 +305,22 @@ def test_chi2_flat_segment_touching_a_clip_bound_is_silent_and_exact():
     c = np.ones((1, 2))
     got = segments_max(a, b, c, np.array([1.0, 2.0]), 0.5, (0.0, 3.0), (0.0, 9.0))
     assert got[0] == pytest.approx(0.0 + (0.0 - 1.0) / 2.0)
+
+
+def test_kl_matches_the_direct_formula_on_signed_ridge_estimates():
+    # Signed ridge weights make some estimates of E[exp(-V/lam)] negative or tiny: the result
+    # must equal -lam log max{w', exp(-v_max/lam)} computed directly (no underflow at these
+    # lam), whichever path the stable computation takes.
+    rng = np.random.default_rng(11)
+    hits = 0
+    for trial in range(40):
+        n, d = 60, 4
+        phi = rng.normal(size=(n, d))  # signed features, strongly signed ridge weights
+        E = RidgeExpectation(phi, cholesky_gram(phi, 0.5))
+        v = rng.uniform(0.0, 3.0, n)
+        lam = float(rng.choice([0.5, 1.0, 2.0]))
+        direct = -lam * np.log(np.maximum(E(np.exp(-v / lam)), np.exp(-3.0 / lam)))
+        hits += int((E(np.exp(-v / lam)) <= 0).sum())
+        np.testing.assert_allclose(kl_regularized(E, v, lam, v_max=3.0), direct, rtol=1e-12,
+                                   atol=1e-12)
+    assert hits > 0  # the negative-estimate branch was exercised

@@ -61,13 +61,20 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     with np.errstate(under="ignore"):
         u = E(np.exp(-(v - shift) / lam))
     log_floor = -(upper - shift) / lam
-    small = u < _TINY
+    # A clearly negative (ridge) estimate gets the floor; only estimates too small in magnitude
+    # to trust after the global shift are recomputed exactly in the log domain.
+    small = np.abs(u) < _TINY
     log_u = np.full_like(u, -np.inf)
-    np.log(u, out=log_u, where=~small)
+    np.log(u, out=log_u, where=u >= _TINY)
     if small.any():
         dims = np.flatnonzero(small)
-        lse, sign = logsumexp(-(v - shift) / lam, b=E.rows(dims), axis=1, return_sign=True)
-        log_u[dims] = np.where(sign > 0, lse, -np.inf)
+        rows = E.rows(dims)
+        # A factor with no weight at all (e.g. a feature no sample activates) keeps -inf and
+        # gets the floor; only factors with weight need the exact log-sum-exp.
+        live = np.any(rows != 0.0, axis=1)
+        if live.any():
+            lse, sign = logsumexp(-(v - shift) / lam, b=rows[live], axis=1, return_sign=True)
+            log_u[dims[live]] = np.where(sign > 0, lse, -np.inf)
     return shift - lam * np.maximum(log_u, log_floor)
 
 
