@@ -313,7 +313,7 @@ def test_kl_matches_the_direct_formula_on_signed_ridge_estimates():
     # lam), whichever path the stable computation takes.
     rng = np.random.default_rng(11)
     hits = 0
-    for trial in range(40):
+    for _ in range(40):
         n, d = 60, 4
         phi = rng.normal(size=(n, d))  # signed features, strongly signed ridge weights
         E = RidgeExpectation(phi, cholesky_gram(phi, 0.5))
