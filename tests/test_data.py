@@ -139,3 +139,17 @@ def test_subset_selects_trajectories():
     assert ds.subset(mask).n_trajectories == 2
     with pytest.raises(ValueError):
         ds.subset([])
+
+
+def test_from_features_keeps_observed_states_and_checks_their_shape(tmp_path):
+    phi, r, nphi = arrays()
+    states = np.arange(12).reshape(4, 3)
+    ds = OfflineDataset.from_features(phi, r, nphi, states=states, actions=np.zeros((4, 3)),
+                                      next_states=states + 1)
+    np.testing.assert_array_equal(ds.states, states)
+    assert ds.actions.dtype == np.int64
+    back = OfflineDataset.load(ds.save(tmp_path / "d"))
+    np.testing.assert_array_equal(back.next_states, states + 1)
+    np.testing.assert_array_equal(ds.subset([1]).states, states[[1]])
+    with pytest.raises(ValueError, match=r"states must start with \(K, H\)"):
+        OfflineDataset.from_features(phi, r, nphi, states=states[:2])

@@ -97,7 +97,8 @@ class OfflineDataset:
     # ------------------------------------------------------------------ constructors
     @classmethod
     def from_features(
-        cls, phi, rewards, next_phi, next_values=None, *, check_simplex: bool = True
+        cls, phi, rewards, next_phi, next_values=None, *, check_simplex: bool = True,
+        states=None, actions=None, next_states=None,
     ) -> OfflineDataset:
         """Build a dataset from feature arrays.
 
@@ -114,6 +115,10 @@ class OfflineDataset:
             Known next-state action values, NaN where the value must be learned.
         check_simplex : bool, default True
             Warn with :class:`SimplexFeatureWarning` when features leave the simplex.
+        states, actions, next_states : array_like (K, H, ...), optional
+            The observed states, action indices and next states behind the features, kept as
+            ``ds.states``, ``ds.actions``, ``ds.next_states`` (saved, subset with the data);
+            for features that :meth:`from_transitions` cannot express (step-dependent ones).
 
         Returns
         -------
@@ -159,11 +164,21 @@ class OfflineDataset:
         if check_simplex:
             check_simplex_features(phi, "phi")
             check_simplex_features(used, "next_phi")
+        extras = {}
+        for name, value in (("states", states), ("actions", actions),
+                            ("next_states", next_states)):
+            if value is None:
+                continue
+            arr = np.asarray(value)
+            if arr.shape[:2] != (K, H):
+                raise ValueError(f"{name} must start with (K, H) = {(K, H)}, got {arr.shape}")
+            extras[name] = arr.astype(np.int64) if name == "actions" else arr
         return cls(
             _phi=np.ascontiguousarray(phi.transpose(1, 0, 2)),
             _rewards=np.ascontiguousarray(rewards.T),
             _next_phi=np.ascontiguousarray(next_phi.transpose(1, 0, 2, 3)),
             _next_values=None if nv is None else np.ascontiguousarray(nv.transpose(1, 0, 2)),
+            _extras=extras,
         )
 
     @classmethod
@@ -255,15 +270,16 @@ class OfflineDataset:
                     f"got {nv.shape}"
                 )
             next_values = nv.reshape(K, H, n_actions)
-        ds = cls.from_features(
+        return cls.from_features(
             phi.reshape(K, H, d),
             rewards,
             next_phi.reshape(K, H, n_actions, d),
             next_values,
             check_simplex=check_simplex,
+            states=states,
+            actions=actions_arr,
+            next_states=next_states,
         )
-        ds._extras = {"states": states, "actions": actions_arr, "next_states": next_states}
-        return ds
 
     # ------------------------------------------------------------------ views
     @property
@@ -409,15 +425,15 @@ class OfflineDataset:
     def load(cls, path) -> OfflineDataset:
         """Load a dataset written by :meth:`save`."""
         arrays, _ = load_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION)
-        ds = cls.from_features(
+        extras = {k[len("extra_") :]: v for k, v in arrays.items() if k.startswith("extra_")}
+        return cls.from_features(
             arrays["phi"],
             arrays["rewards"],
             arrays["next_phi"],
             arrays["next_values"],
             check_simplex=False,
+            **extras,
         )
-        ds._extras = {k[len("extra_") :]: v for k, v in arrays.items() if k.startswith("extra_")}
-        return ds
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:

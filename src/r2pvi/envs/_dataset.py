@@ -39,14 +39,7 @@ def dataset_with_transitions(phi, rewards, next_phi, next_values, states, action
     are attached exactly as ``from_transitions`` attaches them, so that ``ds.states``,
     ``ds.actions`` and ``ds.next_states`` work and survive ``save``/``load``/``subset``.
     """
-    ds = OfflineDataset.from_features(
-        phi, rewards, next_phi, next_values, check_simplex=check_simplex
+    return OfflineDataset.from_features(
+        phi, rewards, next_phi, next_values, check_simplex=check_simplex,
+        states=states, actions=actions, next_states=next_states,
     )
-    # Same private slot that OfflineDataset.from_transitions fills (see the report of issue 4:
-    # a public ``extras=`` argument of ``from_features`` would remove this line).
-    ds._extras = {
-        "states": np.asarray(states),
-        "actions": np.asarray(actions, dtype=np.int64),
-        "next_states": np.asarray(next_states),
-    }
-    return ds
