@@ -86,9 +86,8 @@ def tv_constrained(
     """
     v = np.asarray(v, dtype=float)
     rho = _radii(rho, E.n_dims)
-    plain = E(v)
     if not np.any(rho > 0):
-        return plain
+        return E(v)
     lowest = float(np.min(v))
     floor = lowest if v_min is None else min(float(v_min), lowest)
     if method == "auto":
@@ -102,7 +101,9 @@ def tv_constrained(
     best += rho * floor
     if floor < lowest:  # alpha = V_min below every value: E_i[V]_alpha = alpha E_i(1)
         np.maximum(best, floor * E(np.ones_like(v)), out=best)
-    return np.where(rho > 0, best, plain)
+    if np.all(rho > 0):
+        return best
+    return np.where(rho > 0, best, E(v))  # rho_i = 0: exactly the plain expectation
 
 
 def _factorization(E):
