@@ -161,13 +161,9 @@ def bonus_table(env, estimator) -> np.ndarray:
 
 
 def _check_env(env) -> FiniteLinearMDP:
-    if not isinstance(env, FiniteLinearMDP):
-        raise TypeError(
-            "the uncertainty term is computed exactly on a finite linear MDP with explicit "
-            f"factors (FiniteLinearMDP, SimulatedLinearMDP, HardInstance), got "
-            f"{type(env).__name__}"
-        )
-    return env
+    from ..evaluation.dynamic_programming import _check_finite_env
+
+    return _check_finite_env(env, "the uncertainty term")
 
 
 def uncertainty_values(env, estimator, divergence, lam, *, policy=None) -> np.ndarray:
