@@ -19,10 +19,13 @@ from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_val
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
 
-MODEL_FORMAT_VERSION = 1
+# Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
+# ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
+# the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
+MODEL_FORMAT_VERSION = 2
 ESTIMATOR_REGISTRY: dict[str, type] = {}
 
-_FITTED = ("weights_", "reward_weights_", "gram_cholesky_", "gram_inv_diag_")
+_FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
 
 
 class LinearEstimator:
@@ -119,6 +122,13 @@ class LinearEstimator:
         raise NotImplementedError
 
     # ------------------------------------------------------------------ fitting
+    def _time_homogeneous(self) -> bool:
+        # --- time_homogeneous (issue 14/11): pooled steps, one Gram matrix for all steps
+        value = getattr(self, "time_homogeneous", False)
+        if not isinstance(value, bool | np.bool_):
+            raise TypeError(f"time_homogeneous must be True or False, got {value!r}")
+        return bool(value)
+
     def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None):
         return backward_induction(
             dataset,
@@ -129,6 +139,7 @@ class LinearEstimator:
             r_max=params["r_max"],
             reward_weights=params["reward_weights"],
             sample_weights=sample_weights,
+            time_homogeneous=params.get("time_homogeneous", False),
         )
 
     def _fit_model(self, dataset: OfflineDataset, params: dict) -> FittedModel:
@@ -144,6 +155,7 @@ class LinearEstimator:
             )
         params = self._validate_common(dataset)
         params.update(self._validate_extra(dataset))
+        params["time_homogeneous"] = self._time_homogeneous()
         model = self._fit_model(dataset, params)
         self._set_fitted(model, params, dataset.n_actions)
         return self
@@ -151,8 +163,8 @@ class LinearEstimator:
     def _set_fitted(self, model: FittedModel, params: dict, n_actions: int):
         self.weights_ = model.weights
         self.reward_weights_ = model.reward_weights
-        self.gram_cholesky_ = model.gram_cholesky
         self.gram_inv_diag_ = model.gram_inv_diag
+        self._elliptical = model.elliptical  # acting's cached factors (elliptical penalty)
         self.horizon_, self.n_features_in_ = model.weights.shape
         self.n_actions_ = n_actions
         self._fit_params = {k: params[k] for k in ("beta", "penalty", "r_max")}
@@ -165,7 +177,8 @@ class LinearEstimator:
 
     def _model(self) -> FittedModel:
         return FittedModel(
-            self.weights_, self.reward_weights_, self.gram_cholesky_, self.gram_inv_diag_
+            self.weights_, self.reward_weights_, self.gram_inv_diag_,
+            getattr(self, "_elliptical", None),
         )
 
     # ------------------------------------------------------------------ acting
@@ -238,6 +251,10 @@ class LinearEstimator:
             "fit_params": self._fit_params,
             "n_actions": self.n_actions_,
         }
+        if getattr(self, "_elliptical", None) is not None:
+            index, rs, cs = _pack_elliptical(self._elliptical)
+            arrays["elliptical_r"], arrays["elliptical_c"] = rs, cs
+            meta["elliptical_index"] = index
         return save_npz(path, "estimator", MODEL_FORMAT_VERSION, arrays, meta)
 
     @classmethod
@@ -290,6 +307,34 @@ def load_estimator(path):
             value = get_divergence(value["__divergence__"])
         params[key] = value
     est = cls(**params)
-    model = FittedModel(*(arrays[n] for n in _FITTED))
+    ellip = None
+    if header["format_version"] == 1:  # (H, d, d) Cholesky factors L: R = L^{-1}
+        if header["fit_params"].get("penalty") == "elliptical":
+            ellip = [(np.linalg.solve(c, np.eye(c.shape[0])), 0.0, 1.0)
+                     for c in arrays["gram_cholesky_"]]
+    elif "elliptical_r" in arrays:
+        rs, cs = arrays["elliptical_r"], arrays["elliptical_c"]
+        ellip = [(rs[g], float(cs[g, 0]), float(cs[g, 1])) for g in header["elliptical_index"]]
+    model = FittedModel(*(arrays[n] for n in _FITTED), elliptical=ellip)
     est._set_fitted(model, header["fit_params"], int(header["n_actions"]))
     return est
+
+
+def _pack_elliptical(factors: list) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """Distinct per-step elliptical factors as arrays ``(index (H,), R (G, r, d), c (G, 2))``
+    (pooled steps share one factor: G = 1)."""
+    seen: dict[int, int] = {}
+    index, rs, cs = [], [], []
+    for r, c0, c1 in factors:
+        if not isinstance(r, np.ndarray):
+            raise TypeError(
+                "cannot save an elliptical-penalty model fitted on sparse features (its factors "
+                "are kept as sparse products); refit it, or use penalty='l1' or 'l2'"
+            )
+        key = id(r)
+        if key not in seen:
+            seen[key] = len(rs)
+            rs.append(r)
+            cs.append((c0, c1))
+        index.append(seen[key])
+    return index, np.stack(rs), np.asarray(cs, dtype=float)

@@ -49,12 +49,16 @@ class DRVIL(LinearEstimator):
     r_max : float, default 1.0
         Reward bound: ``Q_h`` is clipped to ``[0, (H - h) r_max]``; the estimate of
         ``E[e^{-V/b}]`` is floored at ``e^{-H r_max / b}``.
+    time_homogeneous : bool, default False
+        Pooled steps: every step's regressions use the transitions of all H steps, with one
+        Gram matrix factored once (per-step work: next-state values and regressions). Valid
+        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
+        e.g. a Gymnasium environment); False is the paper's per-step estimator.
 
     Attributes
     ----------
     weights_ : ndarray (H, d)
     reward_weights_ : ndarray (H, d)
-    gram_cholesky_ : ndarray (H, d, d)
     gram_inv_diag_ : ndarray (H, d)
 
     Examples
@@ -73,13 +77,14 @@ class DRVIL(LinearEstimator):
     """
 
     def __init__(self, rho, *, beta=1.0, gamma=1.0, penalty="l1", reward_weights=None,
-                 r_max=1.0):
+                 r_max=1.0, time_homogeneous=False):
         self.rho = rho
         self.beta = beta
         self.gamma = gamma
         self.penalty = penalty
         self.reward_weights = reward_weights
         self.r_max = r_max
+        self.time_homogeneous = time_homogeneous
 
     def _validate_extra(self, dataset):
         return {"rho": check_radius(self.rho, dataset.horizon, dataset.n_features)}

@@ -111,14 +111,17 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
     delta : float in (0, 1), default 0.05
         Confidence of ``beta="theory"`` (the theorem's bound holds with probability at least
         ``1 - delta``); unused otherwise.
+    time_homogeneous : bool, default False
+        Pooled steps: every step's regressions use the transitions of all H steps, with one
+        Gram matrix factored once (per-step work: next-state values and regressions). Valid
+        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
+        e.g. a Gymnasium environment); False is the paper's per-step estimator.
 
     Attributes
     ----------
     weights_ : ndarray (H, d)
         ``theta_h + w_h`` for every 0-based step.
     reward_weights_ : ndarray (H, d)
-    gram_cholesky_ : ndarray (H, d, d)
-        Lower Cholesky factors of ``Lambda_h``.
     gram_inv_diag_ : ndarray (H, d)
         ``diag(Lambda_h^{-1})`` (the d-rectangular penalty's ingredients).
     beta_ : float
@@ -153,6 +156,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         r_max=1.0,
         variance_aware=False,
         delta=0.05,
+        time_homogeneous=False,
     ):
         self.divergence = divergence
         self.lam = lam
@@ -164,6 +168,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         self.r_max = r_max
         self.variance_aware = variance_aware
         self.delta = delta
+        self.time_homogeneous = time_homogeneous
 
     def _validate_common(self, dataset):
         beta = self.beta
