@@ -37,6 +37,9 @@ class LinearEstimator:
     """
 
     _penalty_choices = PENALTIES
+    # Factorization of the Gram matrices ("auto": primal or dual from the shapes); tests and
+    # benchmarks force "primal"/"dual" to compare the two exact forms.
+    _gram_form = "auto"
     # Parameters every subclass stores in __init__ (declared for type checkers).
     beta: float
     gamma: float
@@ -140,6 +143,7 @@ class LinearEstimator:
             reward_weights=params["reward_weights"],
             sample_weights=sample_weights,
             time_homogeneous=params.get("time_homogeneous", False),
+            form=self._gram_form,
         )
 
     def _fit_model(self, dataset: OfflineDataset, params: dict) -> FittedModel:
