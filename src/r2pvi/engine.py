@@ -257,8 +257,7 @@ def backward_induction(
                 factor = GramFactor(phi, gamma, sw, form)
                 E = RidgeExpectation(phi, factor, sw, nonneg_phi)
                 theta = E(rewards) if reward_weights is None else None
-                inv_diag = E.inverse_diagonal()
-                step_ellip = factor.elliptical_factor() if ellip is not None else None
+                inv_diag = None
             if reward_weights is not None:
                 theta = reward_weights[h]
             if h == H - 1:
@@ -279,6 +278,9 @@ def backward_induction(
                 next_state_values[h] = v_next
                 moments[h] = E(np.stack([v_next, v_next * v_next], axis=1))
                 w = rule(E, v_next, StepContext(h, H, r_max, v_upper))
+            if inv_diag is None:  # after the rule: reuses what the rule formed (dual form)
+                inv_diag = E.inverse_diagonal()
+                step_ellip = factor.elliptical_factor() if ellip is not None else None
             weights[h] = theta + w
             thetas[h] = theta
             inv_diags[h] = inv_diag

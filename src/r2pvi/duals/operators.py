@@ -347,11 +347,13 @@ class GramFactor:
     # ------------------------------------------------------------------ pieces
     @property
     def psi(self):
-        """``W^{1/2} Phi`` (n x d), the rows that enter the Gram matrix."""
+        """``W^{1/2} Phi`` (n x d), the rows that enter the Gram matrix (computed once)."""
         root = getattr(self, "root", None)
         if root is None:
             return self.phi
-        return sp.diags(root) @ self.phi if self.sparse else self.phi * root[:, None]
+        if getattr(self, "_psi", None) is None:
+            self._psi = sp.diags(root) @ self.phi if self.sparse else self.phi * root[:, None]
+        return self._psi
 
     @property
     def linv(self) -> np.ndarray:
@@ -369,11 +371,25 @@ class GramFactor:
 
     @property
     def u(self) -> np.ndarray:
-        """``U = C^{-1} Psi`` (n x d, dense; dual form; computed once)."""
+        """``U = C^{-1} Psi`` (n x d, dense; dual form; computed once): one triangular solve
+        (``n^2 d / 2`` multiply-adds, half a GEMM) for dense features."""
         if self._u is None:
             psi = self.psi
-            self._u = np.asarray((psi.T @ self.cinv.T).T) if self.sparse else self.cinv @ psi
+            if self.sparse:
+                self._u = np.asarray((psi.T @ self.cinv.T).T)
+            else:
+                from scipy.linalg import solve_triangular
+
+                self._u = solve_triangular(self.dual_chol, psi, lower=True, check_finite=False)
         return self._u
+
+    @property
+    def z(self) -> np.ndarray:
+        """``Z = G^{-1} Psi`` (n x d, dense features, dual form; computed once): one GEMM gives
+        both the weight matrix ``M = Z^T W^{1/2}`` and ``diag(Psi^T G^{-1} Psi)``."""
+        if getattr(self, "_z", None) is None:
+            self._z = self.ginv @ self.psi
+        return self._z
 
     @property
     def ginv(self) -> np.ndarray:
@@ -409,6 +425,9 @@ class GramFactor:
             xw = self.phi if self.weights is None else _scale_rows(self.phi, self.weights)
             xw_t = xw.T.toarray() if self.sparse else xw.T
             return self.linv.T @ (self.linv @ xw_t)
+        if not self.sparse:
+            m = np.array(self.z.T, order="C")  # a copy: z stays cached
+            return m if self.root is None else np.multiply(m, self.root, out=m)
         g = self.ginv if self.root is None else self.ginv * self.root
         return np.asarray(self.psi.T @ g)
 
@@ -419,6 +438,8 @@ class GramFactor:
             return np.einsum("ij,ij->j", linv, linv)
         if self.sparse:
             quad = _sparse_column_quadratic(self.psi, self.ginv)
+        elif getattr(self, "_z", None) is not None:  # the weight matrix was formed: n d more
+            quad = np.einsum("ij,ij->j", self.psi, self._z)
         else:
             u = self.u
             quad = np.einsum("ij,ij->j", u, u)
