@@ -116,7 +116,7 @@ def test_form_is_chosen_from_the_shapes():
         GramFactor(np.ones((3, 3)), 1.0, form="kernel")
 
 
-def test_sparse_column_quadratic_in_chunks():
+def test_sparse_column_quadratic():
     rng = np.random.default_rng(3)
     psi = sp.random(30, 50, density=0.2, random_state=4, format="csr")
     dense = psi.toarray()
@@ -126,9 +126,10 @@ def test_sparse_column_quadratic_in_chunks():
     ginv = a @ a.T
     dense = psi.toarray()
     expected = np.einsum("kj,kl,lj->j", dense, ginv, dense)
-    for chunk in (1, 17, 1 << 22):
-        np.testing.assert_allclose(_sparse_column_quadratic(psi, ginv, chunk), expected,
-                                   rtol=1e-12, atol=1e-12)
+    dense[:, 3] = 0.0  # an unused column
+    expected = np.einsum("kj,kl,lj->j", dense, ginv, dense)
+    np.testing.assert_allclose(_sparse_column_quadratic(sp.csr_matrix(dense), ginv), expected,
+                               rtol=1e-12, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------- estimators
@@ -346,3 +347,40 @@ def test_duals_on_factor_operators_unchanged():
     assert E2.factor.form == "dual" and not E2.primal_dense
     with pytest.raises(AttributeError, match="primal form only"):
         E2.chol_inverse  # noqa: B018
+
+
+@pytest.mark.parametrize("name", ["tv", "kl", "chi2", "drpvi", "drvil", "va-drpvi", "pevi"])
+def test_unused_sparse_features_are_reduced_exactly(name):
+    """Each step's rows use 8 of 60 features; the rule runs on the used features plus one
+    representative per distinct radius; the numbers match the dense primal fit."""
+    rng = np.random.default_rng(15)
+    K, H, d = 20, 3, 60
+    phi, rewards, next_phi = _data(rng, K, H, d)
+    for h in range(H):
+        mask = np.zeros(d, bool)
+        mask[rng.choice(d, 8, replace=False)] = True
+        phi[:, h, ~mask] = 0.0
+        phi[:, h, mask] += 1e-3
+        phi[:, h] /= phi[:, h].sum(axis=1, keepdims=True)
+    dense, sparse = _both(phi, rewards, next_phi)
+    rho = rng.choice([0.0, 0.1, 0.3], size=(H, d))
+    makers = dict(ESTIMATORS, drpvi=lambda: DRPVI(rho, beta=0.2),
+                  drvil=lambda: DRVIL(rho, beta=0.2))
+    seen = []
+    est = _fit(makers[name], sparse, "auto")
+    ref = _fit(makers[name], dense, "primal")
+    np.testing.assert_allclose(est.weights_, ref.weights_, atol=1e-9, rtol=1e-9)
+    rule = makers[name]()._make_rule({**makers[name]()._validate_extra(sparse), "r_max": 1.0,
+                                      "beta": 0.2})
+    real_call = type(rule).__call__
+
+    def spy(self, E, v, ctx):
+        seen.append(E.n_dims)
+        return real_call(self, E, v, ctx)
+
+    type(rule).__call__ = spy
+    try:
+        engine.backward_induction(sparse, rule, beta=0.2, gamma=1.0, penalty="l1", r_max=1.0)
+    finally:
+        type(rule).__call__ = real_call
+    assert seen and max(seen) <= 8 + 3

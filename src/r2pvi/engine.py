@@ -22,7 +22,7 @@ steps with one Gram matrix factored once.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -54,6 +54,9 @@ class StepContext:
     horizon: int  # H
     r_max: float  # reward bound; values at step h+1 lie in [0, (H - h - 1) r_max]
     v_upper: float  # the paper's value bound H (times r_max): V in [0, v_upper]
+    # The factors (features) the operator's rows stand for, when the engine hands the rule an
+    # operator restricted to some of them (sparse rows with unused features); None: all d.
+    dims: np.ndarray | None = None
 
 
 class StepRule:
@@ -65,6 +68,11 @@ class StepRule:
 
     def __call__(self, E: RidgeExpectation, v: np.ndarray, ctx: StepContext) -> np.ndarray:
         raise NotImplementedError
+
+    def factor_params(self, h: int) -> np.ndarray | None:
+        """Per-factor parameters of step h, ``(d,)`` (e.g. radii), or None when the rule
+        treats every factor alike. Rules that have them index them by ``ctx.dims``."""
+        return None
 
 
 @dataclass
@@ -277,7 +285,7 @@ def backward_induction(
                 v_next = _max_over_actions(q_next)
                 next_state_values[h] = v_next
                 moments[h] = E(np.stack([v_next, v_next * v_next], axis=1))
-                w = rule(E, v_next, StepContext(h, H, r_max, v_upper))
+                w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
             if inv_diag is None:  # after the rule: reuses what the rule formed (dual form)
                 inv_diag = E.inverse_diagonal()
                 step_ellip = factor.elliptical_factor() if ellip is not None else None
@@ -289,6 +297,34 @@ def backward_induction(
     finally:
         release()  # the duals' reusable work buffers
     return FittedModel(weights, thetas, inv_diags, ellip, next_state_values, moments)
+
+
+def _apply_rule(rule: StepRule, E: RidgeExpectation, factor: GramFactor, v, ctx: StepContext):
+    """``rule(E, v, ctx)``; with sparse rows that leave features unused, on the operator
+    restricted to the used features plus one unused representative per distinct value of the
+    rule's per-factor parameters. An unused feature has a zero weight row, so its dual value
+    is that of its representative: the same numbers, with the duals' O(n d) work on the used
+    features only."""
+    active = factor.active_features()
+    d = E.n_dims
+    if active is None or factor.form != "dual" or active.size > 0.75 * d:
+        return rule(E, v, ctx)
+    unused = np.setdiff1d(np.arange(d), active, assume_unique=True)
+    params = rule.factor_params(ctx.h)
+    if params is None:
+        reps, group = unused[:1], np.zeros(unused.size, dtype=np.intp)
+    else:
+        _, first, group = np.unique(np.asarray(params)[unused], return_index=True,
+                                    return_inverse=True)
+        reps = unused[first]
+    cols = np.concatenate([active, reps])
+    sub = RidgeExpectation(E.phi[:, cols], factor.restrict(cols), E.weights,
+                           E.nonnegative_features)
+    w_sub = rule(sub, v, replace(ctx, dims=cols))
+    w = np.empty(d)
+    w[cols] = w_sub
+    w[unused] = w_sub[active.size + group.ravel()]
+    return w
 
 
 def _pooled_steps(dataset: OfflineDataset):

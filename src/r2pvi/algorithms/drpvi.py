@@ -19,7 +19,11 @@ class TVBallRule(StepRule):
         self.rho, self.v_min = rho, v_min  # rho: (H, d)
 
     def __call__(self, E, v, ctx):
-        return tv_constrained(E, v, self.rho[ctx.h], floor_value(self.v_min, v))
+        rho = self.rho[ctx.h] if ctx.dims is None else self.rho[ctx.h][ctx.dims]
+        return tv_constrained(E, v, rho, floor_value(self.v_min, v))
+
+    def factor_params(self, h):
+        return self.rho[h]
 
 
 class DRPVI(VarianceAwareMixin, LinearEstimator):

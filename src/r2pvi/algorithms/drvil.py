@@ -18,7 +18,11 @@ class KLBallRule(StepRule):
         self.rho = rho  # (H, d)
 
     def __call__(self, E, v, ctx):
-        return kl_constrained(E, v, self.rho[ctx.h], v_max=ctx.v_upper, centered=True)
+        rho = self.rho[ctx.h] if ctx.dims is None else self.rho[ctx.h][ctx.dims]
+        return kl_constrained(E, v, rho, v_max=ctx.v_upper, centered=True)
+
+    def factor_params(self, h):
+        return self.rho[h]
 
 
 class DRVIL(LinearEstimator):

@@ -12,6 +12,8 @@ states, or all states of a finite model) to the d expectations ``E(y)_i = sum_j 
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -403,6 +405,26 @@ class GramFactor:
         ci = self.cinv
         return ci.T @ (ci @ z)
 
+    def active_features(self) -> np.ndarray | None:
+        """Indices of the features some row uses (sparse rows), None for dense rows."""
+        if not self.sparse:
+            return None
+        return np.unique(self.phi.indices)
+
+    def restrict(self, cols: np.ndarray) -> GramFactor:
+        """The factor of the features ``cols`` alone, for a dual-form factor whose other
+        features are unused (zero columns): ``Lambda`` is then block diagonal, ``Psi Psi^T``
+        and its factor are unchanged and shared."""
+        if self.form != "dual":
+            raise ValueError("restrict needs the dual form")
+        new = copy.copy(self)
+        new.phi = self.phi[:, cols]
+        new.d = len(cols)
+        new._psi = None
+        new._u = None if self._u is None else self._u[:, cols]
+        new._z = None if getattr(self, "_z", None) is None else self._z[:, cols]
+        return new
+
     # ------------------------------------------------------------------ the operator
     def regress(self, y: np.ndarray) -> np.ndarray:
         """Ridge weights ``Lambda^{-1} Phi^T W y`` for ``y (n,)`` or ``(n, m)``."""
@@ -475,32 +497,18 @@ class _SparseProduct:
             np.asarray((x @ self.psi.T).toarray() @ self.cinv.T)
 
 
-def _sparse_column_quadratic(psi, ginv: np.ndarray, chunk: int = 1 << 22) -> np.ndarray:
-    """``diag(Psi^T G^{-1} Psi)`` for sparse ``Psi (n, d)``: for each column j the quadratic
-    form of ``G^{-1}`` over the column's non-zeros, summed pair by pair (``sum_j m_j^2`` pairs
-    for ``m_j`` non-zeros in column j, in chunks of about ``chunk`` pairs), never a dense
-    n x d matrix."""
+def _sparse_column_quadratic(psi, ginv: np.ndarray) -> np.ndarray:
+    """``diag(Psi^T G^{-1} Psi)`` for sparse ``Psi (n, d)``, on the used columns only:
+    ``Z = Psi_A^T G^{-1}`` (``nnz(Psi) n`` flops, ``|A| x n`` dense for the ``|A|`` used
+    columns), then the sum of ``Psi_A^T * Z`` over the non-zeros; unused columns give 0."""
     csc = sp.csc_matrix(psi)
-    csc.sum_duplicates()
-    d = csc.shape[1]
-    counts = np.diff(csc.indptr)
-    rows, vals = csc.indices, csc.data
-    col_of = np.repeat(np.arange(d), counts)
-    partners = counts[col_of]  # pairs contributed by each non-zero
-    out = np.zeros(d)
-    if rows.size == 0:
+    out = np.zeros(csc.shape[1])
+    used = np.flatnonzero(np.diff(csc.indptr))
+    if used.size == 0:
         return out
-    ends = np.cumsum(partners)
-    cuts = np.searchsorted(ends, np.arange(chunk, int(ends[-1]), chunk), side="left")
-    bounds = np.unique(np.concatenate([[0], cuts, [rows.size]]))
-    for first, last in zip(bounds[:-1], bounds[1:], strict=True):
-        a = np.arange(first, last)
-        rep = partners[a]
-        a_idx = np.repeat(a, rep)
-        offs = np.arange(a_idx.size) - np.repeat(np.cumsum(rep) - rep, rep)
-        b_idx = csc.indptr[col_of[a_idx]] + offs
-        contrib = vals[a_idx] * vals[b_idx] * ginv[rows[a_idx], rows[b_idx]]
-        out += np.bincount(col_of[a_idx], contrib, minlength=d)
+    sub_t = csc[:, used].T.tocsr()  # (|A|, n)
+    z = np.asarray(sub_t @ ginv)
+    out[used] = np.asarray(sub_t.multiply(z).sum(axis=1)).ravel()
     return out
 
 
