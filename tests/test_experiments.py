@@ -8,6 +8,7 @@ import pytest
 from r2pvi.cli import main
 from r2pvi.experiments import reproduce_figure
 from r2pvi.experiments.config import merge_settings, parse_assignment
+from r2pvi.experiments.results import read_results
 from r2pvi.experiments.figures import FIGURES
 from r2pvi.experiments.runner import Task, run_tasks
 
@@ -62,15 +63,24 @@ def test_reproduce_figure_writes_tidy_results_and_plots(tmp_path, capsys):
     out = reproduce_figure("fig1a", tmp_path, overrides=TINY, progress=False)
     for ext in ("csv", "json", "png", "pdf"):
         assert (tmp_path / f"fig1a.{ext}").stat().st_size > 0
-    data = json.loads((tmp_path / "fig1a.json").read_text())
+    data = read_results(tmp_path / "fig1a.json")
     assert data["config"]["settings"]["replications"] == 2
+    assert (data["quantity"], data["unit"]) == ("average return", "return")
     rows = data["rows"]
     learned = [r for r in rows if r["kind"] != "exact"]
     assert len(learned) == 2 * 2 * 2  # algorithms x replications x q
+    # the exact optimum does not depend on the data: its rows are written once, not per
+    # replication (2 policies x 2 q)
+    assert len([r for r in rows if r["kind"] == "exact"]) == 2 * 2
     assert {r["r2pvi_version"] for r in rows} == {data["r2pvi_version"]}
     assert "average return" in capsys.readouterr().out
-    header = (tmp_path / "fig1a.csv").read_text().splitlines()[0].split(",")
-    assert {"figure", "algorithm", "replication", "q", "value", "xi_norm"} <= set(header)
+    lines = (tmp_path / "fig1a.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    assert {"figure", "algorithm", "replication", "q", "quantity", "unit", "value",
+            "xi_norm"} <= set(header)
+    assert header.index("quantity") + 2 == header.index("value")
+    assert all(line.split(",")[header.index("quantity")] == "average return"
+               for line in lines[1:])
     # exact evaluation: PEVI's return falls with q, and the exact rows carry the x1 action
     assert out["rows"][0]["value"] >= 0.0
     assert all("action_x1" in r for r in rows if r["kind"] == "exact")

@@ -7,7 +7,7 @@ import numpy as np
 from ...envs import SimulatedLinearMDP
 from ..results import format_table, summarize
 from ..runner import Task
-from .common import Figure, evaluate, make_estimator, plot_series
+from .common import Figure, evaluate, make_estimator, plot_series, spread_note
 
 __all__ = ["FIG1A", "FIG1B", "FIG1C"]
 
@@ -119,7 +119,8 @@ def _fig1a_tasks(s):
 def _fig1a_plot(rows, s):
     return plot_series(rows, "xi_norm", "algorithm", "q", xlabel="perturbation q",
                        ylabel="average return", panel_fmt="||xi||_1 = {}",
-                       title=f"Simulated linear MDP, lam = {s['lam']}")
+                       title=f"Simulated linear MDP, lam = {s['lam']}",
+                       spread=spread_note(s["replications"]) + "; dashed: exact optima")
 
 
 FIG1A = Figure(
@@ -144,7 +145,7 @@ def _fig1b_plot(rows, s):
                  series=f"lam = {r['param']}") for r in rows]
     return plot_series(rows, "panel", "series", "q", xlabel="perturbation q",
                        ylabel="average return", title="R2PVI: smaller lam, more robust",
-                       ncols=len(s["divergences"]))
+                       ncols=len(s["divergences"]), spread=spread_note(s["replications"]))
 
 
 def _fig1b_table(rows, s):
@@ -175,9 +176,17 @@ def _fig1c_tasks(s):
 
 
 def _fig1c_plot(rows, s):
-    return plot_series(rows, "xi_norm", "algorithm", "param", xlabel="rho (DRPVI) / lam (R2PVI)",
+    # rho and lam span two decades; rho = 0 (DRPVI = PEVI-like) must stay visible: a log axis
+    # above the smallest positive grid value, linear below it.
+    positive = [v for v in list(s["rhos"]) + list(s["lams"]) if v > 0]
+    xscale = ("symlog", min(positive)) if any(v == 0 for v in s["rhos"]) else "log"
+    scale_note = (f"log scale, linear below {min(positive):g}" if isinstance(xscale, tuple)
+                  else "log scale")
+    return plot_series(rows, "xi_norm", "algorithm", "param",
+                       xlabel=f"rho (DRPVI) / lam (R2PVI), {scale_note}",
                        ylabel=f"average return at q = {s['q']}", panel_fmt="||xi||_1 = {}",
-                       title="Fixed target q: DRPVI against rho, R2PVI against lam")
+                       title="Fixed target q: DRPVI against rho, R2PVI against lam",
+                       xscale=xscale, spread=spread_note(s["replications"]))
 
 
 def _fig1c_table(rows, s):
