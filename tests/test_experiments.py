@@ -1,6 +1,5 @@
 """Figure reproduction: sweeps, seeds and backends, config layering, result files, the CLI."""
 
-import json
 
 import numpy as np
 import pytest
@@ -8,8 +7,8 @@ import pytest
 from r2pvi.cli import main
 from r2pvi.experiments import reproduce_figure
 from r2pvi.experiments.config import merge_settings, parse_assignment
-from r2pvi.experiments.results import read_results
 from r2pvi.experiments.figures import FIGURES
+from r2pvi.experiments.results import read_results
 from r2pvi.experiments.runner import Task, run_tasks
 
 TINY = {"replications": 2, "xi_norms": [0.3], "qs": [0.0, 1.0], "divergences": ["tv"]}
@@ -114,7 +113,7 @@ def test_cli_reproduce_with_overrides_and_errors(tmp_path, capsys):
                  "--replications", "2", "--xi-norms", "0.2", "--set", "qs=[0.0, 0.5]",
                  "--no-progress", "--no-plot"])
     assert code == 0
-    data = json.loads((tmp_path / "fig1a.json").read_text())
+    data = read_results(tmp_path / "fig1a.json")
     assert data["config"]["settings"]["lam"] == 0.3
     assert {r["q"] for r in data["rows"]} == {0.0, 0.5}
     assert main(["reproduce", "fig9", "--out", str(tmp_path)]) == 2
@@ -123,5 +122,5 @@ def test_cli_reproduce_with_overrides_and_errors(tmp_path, capsys):
     toml.write_text("replications = 1\n[fig1a]\nxi_norms = [0.1]\nqs = [1.0]\n")
     assert main(["reproduce", "fig1a", "--out", str(tmp_path), "--config", str(toml),
                  "--no-progress", "--no-plot"]) == 0
-    data = json.loads((tmp_path / "fig1a.json").read_text())
+    data = read_results(tmp_path / "fig1a.json")
     assert data["config"]["settings"]["xi_norms"] == [0.1]

@@ -41,7 +41,8 @@ def series_style(index: int) -> dict:
     """Colour, marker and line style of the ``index``-th learned series of a figure.
 
     Colours cycle over 10, markers over 10 and line styles over 5 values, so two series with
-    indices below 10 never share colour and marker.
+    indices below 10 never share colour and marker; odd indices have hollow markers, so
+    that two series with the same values both stay visible.
 
     Examples
     --------
@@ -50,8 +51,11 @@ def series_style(index: int) -> dict:
     >>> series_style(0)["color"] != series_style(1)["color"]
     True
     """
-    return {"color": f"C{index % 10}", "marker": _MARKERS[index % len(_MARKERS)],
-            "linestyle": _LINESTYLES[index % len(_LINESTYLES)]}
+    style = {"color": f"C{index % 10}", "marker": _MARKERS[index % len(_MARKERS)],
+             "linestyle": _LINESTYLES[index % len(_LINESTYLES)]}
+    if index % 2:  # hollow markers: a filled marker under them stays visible
+        style["markerfacecolor"] = "none"
+    return style
 
 
 def _exact_name(label: str) -> str:
@@ -95,7 +99,7 @@ def merge_identical_exact(series: dict, atol: float = 1e-9) -> dict:
 
 
 def line_panels(panels, *, xlabel, ylabel, title=None, xscale="linear", logy=False,
-                ncols=None, spread=None, style="band", logx=False):
+                ncols=None, spread=None, style="band", logx=False, xticks=None):
     """One axis per panel; each panel is ``(panel_title, {series_label: (x, mean, std)})``.
 
     Parameters
@@ -115,6 +119,8 @@ def line_panels(panels, *, xlabel, ylabel, title=None, xscale="linear", logy=Fal
         Shaded bands (dense x grids) or error bars (few points, log axes).
     logx : bool
         Shorthand for ``xscale="log"``.
+    xticks : sequence of float, optional
+        Tick positions, labelled with their plain values (useful on log axes).
 
     Returns the matplotlib figure, with one legend below (several panels) or beside (one
     panel) the axes.
@@ -159,9 +165,12 @@ def line_panels(panels, *, xlabel, ylabel, title=None, xscale="linear", logy=Fal
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         if isinstance(xscale, tuple):
-            ax.set_xscale(xscale[0], linthresh=xscale[1])
+            ax.set_xscale(xscale[0], linthresh=xscale[1], linscale=0.4)
         elif xscale != "linear":
             ax.set_xscale(xscale)
+        if xticks is not None:
+            ax.set_xticks(list(xticks), [f"{t:g}" for t in xticks])
+            ax.minorticks_off()
         if logy:
             ax.set_yscale("log")
         ax.grid(alpha=0.3, which="both" if logy else "major")

@@ -8,7 +8,9 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
-__all__ = ["write_results", "read_results", "summarize", "format_table"]
+__all__ = ["write_results", "read_results", "summarize", "format_table", "RESULTS_FORMAT"]
+
+RESULTS_FORMAT = "r2pvi-results/2"
 
 
 def _version() -> str:
@@ -24,9 +26,12 @@ def write_results(rows: list[dict], out_dir, name: str, config: dict, *,
     Every CSV row carries the figure name and the r2pvi version, and, when given, the
     ``quantity`` and ``unit`` of its ``value`` column (say ``"average return"`` and
     ``"return"``, or ``"fit time"`` and ``"s"``), so that a CSV read on its own says what its
-    numbers are. Rows that set their own ``quantity``/``unit`` keep them. The JSON file holds
-    the full configuration, the figure name, version, quantity and unit once, and the rows
-    (one compact line each) without the repeated figure and version.
+    numbers are. Rows that set their own ``quantity``/``unit`` keep them.
+
+    The JSON file (format ``"r2pvi-results/2"``) holds the full configuration, the figure
+    name, version, quantity and unit once, the ``columns`` and the ``rows`` as lists of values
+    in column order (one compact line per row; a value a row lacks is ``null``). Read it back
+    as dictionaries with :func:`read_results`.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -46,12 +51,17 @@ def write_results(rows: list[dict], out_dir, name: str, config: dict, *,
             writer.writerow({"figure": name, "r2pvi_version": version,
                              **{k: row.get(k, "") for k in columns[2:]}})
     json_path = out / f"{name}.json"
-    header = {"figure": name, "r2pvi_version": version, **described, "config": config}
+    # constant quantity/unit columns are stored once, in the header
+    json_columns = [c for c in columns[2:] if not (
+        c in described and all(row[c] == described[c] for row in rows))]
+    header = {"format": RESULTS_FORMAT, "figure": name, "r2pvi_version": version, **described,
+              "config": config, "columns": json_columns}
     with open(json_path, "w") as fh:
         text = json.dumps(header, indent=1, default=_jsonable)
         fh.write(text[:-2] + ',\n "rows": [\n')
-        fh.write(",\n".join(json.dumps(row, separators=(",", ":"), default=_jsonable)
-                            for row in rows))
+        fh.write(",\n".join(
+            json.dumps([row.get(k) for k in json_columns], separators=(",", ":"),
+                       default=_jsonable) for row in rows))
         fh.write("\n ]\n}\n")
     return {"csv": csv_path, "json": json_path}
 
@@ -74,12 +84,19 @@ def _with_quantity(row: dict, described: dict) -> dict:
 def read_results(path) -> dict:
     """Read a results JSON written by :func:`write_results`.
 
-    Every row gets back the figure name and library version of the file (stored once).
+    Rows come back as dictionaries, each with the figure name and library version of the
+    file (stored once); keys a row did not have (``null`` in the file) are left out.
     """
     with open(path) as fh:
         data = json.load(fh)
-    data["rows"] = [{"figure": data["figure"], "r2pvi_version": data["r2pvi_version"], **row}
-                    for row in data["rows"]]
+    if data.get("format") != RESULTS_FORMAT:
+        raise ValueError(f"{path}: not an r2pvi results file of format {RESULTS_FORMAT!r} "
+                         f"(found format {data.get('format')!r}); rerun r2pvi reproduce")
+    columns = data.pop("columns")
+    const = {k: data[k] for k in ("figure", "r2pvi_version", "quantity", "unit")
+             if k in data and k not in columns}
+    data["rows"] = [{**const, **{k: v for k, v in zip(columns, values, strict=True)
+                                 if v is not None}} for values in data["rows"]]
     return data
 
 

@@ -13,6 +13,11 @@ __all__ = ["FIG1A", "FIG1B", "FIG1C"]
 
 Q_GRID = [round(0.1 * i, 1) for i in range(11)]
 
+
+def _div(name: str) -> str:
+    """Display name of a divergence: TV, KL, chi2."""
+    return name if name == "chi2" else name.upper()
+
 # Settings of the paper's Appendix A (Table "Hyper-parameters") shared by fig1a-c.
 LINEAR_MDP_DEFAULTS = {
     "xi_norms": [0.3, 0.2, 0.1],
@@ -141,7 +146,7 @@ def _fig1b_tasks(s):
 
 
 def _fig1b_plot(rows, s):
-    rows = [dict(r, panel=f"R2PVI-{r['divergence']}, ||xi||_1 = {r['xi_norm']}",
+    rows = [dict(r, panel=f"R2PVI-{_div(r['divergence'])}, ||xi||_1 = {r['xi_norm']}",
                  series=f"lam = {r['param']}") for r in rows]
     return plot_series(rows, "panel", "series", "q", xlabel="perturbation q",
                        ylabel="average return", title="R2PVI: smaller lam, more robust",
@@ -170,7 +175,7 @@ FIG1C_DEFAULTS = {**LINEAR_MDP_DEFAULTS, "q": 0.9,
 
 def _fig1c_tasks(s):
     algorithms = [("DRPVI (x = rho)", "DRPVI", rho, "tv") for rho in s["rhos"]]
-    algorithms += [(f"R2PVI-{d} (x = lam)", "R2PVI", lam, d) for d in s["divergences"]
+    algorithms += [(f"R2PVI-{_div(d)} (x = lam)", "R2PVI", lam, d) for d in s["divergences"]
                    for lam in s["lams"]]
     return _replicated(s, algorithms, [s["q"]])
 
@@ -178,15 +183,16 @@ def _fig1c_tasks(s):
 def _fig1c_plot(rows, s):
     # rho and lam span two decades; rho = 0 (DRPVI = PEVI-like) must stay visible: a log axis
     # above the smallest positive grid value, linear below it.
-    positive = [v for v in list(s["rhos"]) + list(s["lams"]) if v > 0]
-    xscale = ("symlog", min(positive)) if any(v == 0 for v in s["rhos"]) else "log"
-    scale_note = (f"log scale, linear below {min(positive):g}" if isinstance(xscale, tuple)
-                  else "log scale")
+    values = sorted({float(v) for v in list(s["rhos"]) + list(s["lams"])})
+    positive = [v for v in values if v > 0]
+    xscale = ("symlog", min(positive)) if values and values[0] == 0 else "log"
+    ticks = [v for v in (0, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20)
+             if (v > 0 or values[0] == 0) and values[0] <= v <= values[-1]]
     return plot_series(rows, "xi_norm", "algorithm", "param",
-                       xlabel=f"rho (DRPVI) / lam (R2PVI), {scale_note}",
+                       xlabel="rho (DRPVI) / lam (R2PVI), log axis",
                        ylabel=f"average return at q = {s['q']}", panel_fmt="||xi||_1 = {}",
                        title="Fixed target q: DRPVI against rho, R2PVI against lam",
-                       xscale=xscale, spread=spread_note(s["replications"]))
+                       xscale=xscale, xticks=ticks, spread=spread_note(s["replications"]))
 
 
 def _fig1c_table(rows, s):

@@ -31,6 +31,10 @@ PUT_DEFAULTS = {
 }
 
 
+def _div(name: str) -> str:
+    return name if name == "chi2" else name.upper()
+
+
 def _env(s, d=None):
     return AmericanPutOption(p0=s["p0"], d=d or s["features"], H=s["horizon"],
                              strike=s["strike"], anchor_span=s["anchor_span"])
@@ -92,7 +96,7 @@ FIG1D_DEFAULTS = {**PUT_DEFAULTS, "lams": [1.0, 3.0, 5.0], "rhos": [0.2, 0.1, 0.
 
 def _fig1d_algorithms(s):
     algs = [("PEVI", "PEVI", None, "none")]
-    algs += [(f"R2PVI-{s['divergence']} lam={lam}", "R2PVI", lam, s["divergence"])
+    algs += [(f"R2PVI-{_div(s['divergence'])} lam={lam}", "R2PVI", lam, s["divergence"])
              for lam in s["lams"]]
     algs += [(f"DRPVI rho={rho}", "DRPVI", rho, "tv") for rho in s["rhos"]]
     return algs
