@@ -25,6 +25,15 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 import r2pvi  # noqa: E402
 
+try:  # one BLAS thread: on a busy CI machine multi-threaded BLAS busy-waits and turns the
+    # CartPole example's small solves from milliseconds into tenths of seconds (measured:
+    # 8 min instead of 15 s on 2 shared cores)
+    from threadpoolctl import threadpool_limits
+
+    _BLAS_LIMIT = threadpool_limits(limits=1, user_api="blas")
+except ImportError:  # pragma: no cover - threadpoolctl comes with the experiments extra
+    pass
+
 project = "r2pvi"
 author = "the r2pvi developers"
 copyright = "2026, the r2pvi developers"
