@@ -15,6 +15,7 @@ Conventions shared by every figure of ``r2pvi reproduce``:
 from __future__ import annotations
 
 import re
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -183,6 +184,8 @@ def line_panels(panels, *, xlabel, ylabel, title=None, xscale="linear", logy=Fal
         order = [k for k in handles if k in styles] + [k for k in handles if k not in styles]
         loc = "outside right upper" if n == 1 else "outside lower center"
         ncol = 1 if n == 1 else min(len(order), 4 if len(order) > 6 else len(order))
+        if spread and n == 1:  # beside a single axis: wrap, so the title stays narrow
+            spread = textwrap.fill(spread, 34)
         fig.legend([handles[k] for k in order], order, loc=loc, ncols=ncol, fontsize=8,
                    title=spread, title_fontsize=8, frameon=False)
     return fig
