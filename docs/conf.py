@@ -1,12 +1,13 @@
 """Sphinx configuration of the r2pvi documentation.
 
 Build: ``python -m sphinx -W --keep-going -b html docs docs/_build/html`` (warnings are
-errors, as in CI). Why this stack (also on the installation page): Sphinx with numpydoc renders the docstrings the code already has (numpydoc sections, runnable Examples),
-autosummary turns every public name into a reference page, sphinx-gallery runs the scripts in
-``examples/`` at build time (so every picture in the gallery is produced by the code of its
-release), and myst-parser keeps the reproduction, theory and environment pages in the
-markdown the repository already uses. These are the tools of scikit-learn, d3rlpy and Minari,
-the libraries RL researchers know.
+errors, as in CI). Why this stack (also on the installation page): Sphinx with numpydoc
+renders the docstrings the code already has (numpydoc sections, runnable Examples),
+autosummary turns every public name into a reference page, sphinx-gallery runs the scripts
+in ``examples/`` at build time (so every picture in the gallery is produced by the code of
+its release), and myst-parser keeps the reproduction, theory and environment pages in the
+markdown the repository already uses. These are the tools of scikit-learn, d3rlpy and
+Minari, the libraries RL researchers know.
 """
 
 from __future__ import annotations

@@ -50,7 +50,7 @@ pevi = np.array([summarize(PEVI(**common).fit(data)) for data in datasets])
 # Colour: the estimator; line style (panel 3): the shift q.
 fig, axes = plt.subplots(1, 3, figsize=(12, 3.9), constrained_layout=True)
 styles = ("-", "--", ":")
-for (div, res), marker, color in zip(results.items(), "os", ("C0", "C1")):
+for (div, res), marker, color in zip(results.items(), "os", ("C0", "C1"), strict=False):
     mean = res.mean(axis=1)
     label = f"R2PVI-{div.upper()}"
     axes[0].plot(lams, mean[:, 0], marker=marker, color=color, label=label)
@@ -66,7 +66,7 @@ axes[1].axhline(pevi[:, 1].mean(), color="gray", linewidth=1, label="PEVI")
 titles = ("1. learned robust value at x1 (data only)",
           "2. learned policy: p(a) of its action at x1 (data only)",
           "3. exact return under a shift q (needs a model)")
-for ax, title in zip(axes, titles):
+for ax, title in zip(axes, titles, strict=False):
     ax.set_xscale("log")
     ax.set_xlabel("lam")
     ax.set_title(title, fontsize=9)

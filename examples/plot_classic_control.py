@@ -73,14 +73,15 @@ perturbations = {
                                                                  action_noise=p)),
 }
 fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True, sharey=True)
-for ax, (name, (levels, make)) in zip(axes, perturbations.items()):
+for ax, (name, (levels, make)) in zip(axes, perturbations.items(), strict=False):
     curves = {label: [] for label in policies}
     for p in levels:
         env = make(p)
         for label, policy in policies.items():
             curves[label].append(evaluate_policy(env, policy, 10, seed=1, max_steps=H,
                                                  n_envs=10))
-    for marker, style, (label, values) in zip("osD", ("-", "-.", "--"), curves.items()):
+    looks = zip("osD", ("-", "-.", "--"), curves.items(), strict=False)
+    for marker, style, (label, values) in looks:
         mean, se = np.array(values).T  # hollow markers over filled: coinciding curves show
         ax.errorbar(levels, mean, yerr=se, marker=marker, capsize=2, linestyle=style,
                     markerfacecolor=None if marker == "o" else "none", label=label)

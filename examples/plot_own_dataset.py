@@ -73,7 +73,7 @@ phi_all = np.stack([feature_map(all_states, np.full(S, a)) for a in range(A)], a
 
 fig, axes = plt.subplots(1, len(estimators), figsize=(11, 3.2), constrained_layout=True,
                          sharey=True)
-for ax, (name, est) in zip(axes, estimators.items()):
+for ax, (name, est) in zip(axes, estimators.items(), strict=False):
     est.fit(data)
     jump = np.array([est.act(phi_all, h) for h in range(H)])[:, :GOAL]  # (H, path states)
     ax.imshow(jump, cmap="coolwarm", vmin=0, vmax=1, aspect="auto")

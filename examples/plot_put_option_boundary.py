@@ -73,7 +73,7 @@ for p0, style in ((0.5, "-"), (0.8, ":")):
     shifted = env.perturbed(p0)
     ax.plot(steps, [optimal_boundary(shifted, h) for h in steps], color="black",
             linestyle=style, linewidth=2, label=f"exact optimum, p0 = {p0}")
-for marker, (name, est) in zip("os^", estimators.items()):
+for marker, (name, est) in zip("os^", estimators.items(), strict=False):
     ax.plot(steps, [learned_boundary(est, h) for h in steps], marker=marker,
             markerfacecolor="none", label=name)
 ax.set_xlabel("step h")

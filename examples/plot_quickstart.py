@@ -51,7 +51,7 @@ for name, est in estimators.items():
 # keeps more of it as the shift grows.
 qs = np.linspace(0, 1, 11)
 fig, ax = plt.subplots(figsize=(6, 4))
-for marker, (name, est) in zip("osD^", estimators.items()):
+for marker, (name, est) in zip("osD^", estimators.items(), strict=False):
     returns = [expected_return(env.perturbed(q), est) for q in qs]
     ax.plot(qs, returns, marker=marker, label=name, markerfacecolor="none")
 ax.set_xlabel("shift q of the test environment")

@@ -49,7 +49,7 @@ for seed in range(20):
 fig, ax = plt.subplots(figsize=(7, 4.2))
 ax.plot(p, Q_nominal[0, 0, order], "k-", lw=2, label="exact nominal optimum Q*_0(x1, a)")
 ax.plot(p, Q_robust[0, 0, order], "k--", lw=2, label=f"exact KL robust optimum, lam = {lam}")
-for marker, (name, q) in zip("os", learned.items()):
+for marker, (name, q) in zip("os", learned.items(), strict=False):
     q = np.asarray(q)[:, order]
     ax.errorbar(p + (0.002 if marker == "s" else -0.002), q.mean(0), yerr=q.std(0, ddof=1),
                 fmt=marker, markerfacecolor="none", capsize=2,
