@@ -78,6 +78,17 @@ API_MODULES = [
 ]
 
 
+def _api_modules() -> list[tuple[str, str]]:
+    """``API_MODULES`` plus any public subpackage it does not list yet (a new one appears in
+    the reference without editing this file)."""
+    import pkgutil
+
+    listed = [name for name, _ in API_MODULES]
+    extra = [(f"r2pvi.{m.name}", m.name) for m in pkgutil.iter_modules(r2pvi.__path__)
+             if m.ispkg and not m.name.startswith("_") and f"r2pvi.{m.name}" not in listed]
+    return API_MODULES + sorted(extra)
+
+
 def _write_api_page() -> None:
     """Write ``api.rst`` from the modules' ``__all__``: a new public name appears without
     editing the docs, and nothing is documented twice."""
@@ -86,7 +97,7 @@ def _write_api_page() -> None:
              "API reference", "=============", "",
              "Every public name of r2pvi, from its docstring (each formula names the "
              "paper's equation it implements).", ""]
-    for modname, title in API_MODULES:
+    for modname, title in _api_modules():
         try:
             module = importlib.import_module(modname)
         except ImportError:  # a subpackage that does not exist in this version
