@@ -161,3 +161,31 @@ html_theme_options = {
 }
 html_static_path: list[str] = []
 html_show_sourcelink = False
+
+
+# --------------------------------------------------------------------------- optional pages
+# Pages other branches add (the architecture for contributors, the numerical guarantees):
+# a toctree line "OPTIONAL_PAGES" becomes the ones that exist, so the site includes them as
+# soon as they are merged and builds without them meanwhile.
+OPTIONAL_PAGES = {
+    "index": ["architecture"],
+    "user_guide/index": ["../numerical-guarantees", "../numerical-guarantees-constrained"],
+}
+
+
+def _optional_pages(app, docname, source):
+    if docname not in OPTIONAL_PAGES:
+        return
+    base = (HERE / docname).parent
+    present = [page for page in OPTIONAL_PAGES[docname]
+               if (base / f"{page}.md").exists() or (base / f"{page}.rst").exists()]
+    source[0] = source[0].replace("OPTIONAL_PAGES\n", "".join(f"{p}\n" for p in present))
+
+
+def _reread_optional(app, env, added, changed, removed):
+    return list(OPTIONAL_PAGES)  # an incremental build notices pages that came or went
+
+
+def setup(app):
+    app.connect("source-read", _optional_pages)
+    app.connect("env-get-outdated", _reread_optional)
