@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["line_panels", "save_figure", "series_style", "merge_identical_exact"]
+__all__ = ["line_panels", "save_figure", "series_style", "merge_identical_exact",
+           "exact_groups"]
 
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "*")
 _LINESTYLES = ("-", (0, (5, 1.5)), "-.", (0, (1, 1)), (0, (3, 1, 1, 1, 1, 1)))
@@ -63,6 +64,29 @@ def _exact_name(label: str) -> str:
     return re.sub(r"\s*(robust\s+)?optimum\s*\(exact\)\s*$", "", label).strip() or label
 
 
+def exact_groups(series: dict, atol: float = 1e-9) -> dict[str, list[str]]:
+    """Group the exact series (labels containing ``"(exact)"``) whose x and values coincide.
+
+    Returns ``{label: [original labels]}``, the label listing every name of a group of more
+    than one (``"exact optimum: nominal = TV = KL"``).
+    """
+    groups: list[tuple[list[str], np.ndarray, np.ndarray]] = []
+    for label, value in series.items():
+        if "(exact)" not in label:
+            continue
+        x, mean = np.asarray(value[0], float), np.asarray(value[1], float)
+        for names, gx, gmean in groups:
+            if gx.shape == x.shape and np.allclose(gx, x) and np.allclose(gmean, mean,
+                                                                          atol=atol, rtol=0):
+                names.append(label)
+                break
+        else:
+            groups.append(([label], x, mean))
+    return {(names[0] if len(names) == 1 else
+             "exact optimum: " + " = ".join(_exact_name(n) for n in names)): names
+            for names, _, _ in groups}
+
+
 def merge_identical_exact(series: dict, atol: float = 1e-9) -> dict:
     """Merge exact series (labels containing ``"(exact)"``) whose x and values coincide.
 
@@ -78,24 +102,9 @@ def merge_identical_exact(series: dict, atol: float = 1e-9) -> dict:
     >>> list(merge_identical_exact(s))
     ['PEVI', 'exact optimum: nominal = TV', 'KL robust optimum (exact)']
     """
-    out: dict = {}
-    groups: list[tuple[list[str], tuple]] = []
-    for label, value in series.items():
-        if "(exact)" not in label:
-            out[label] = value
-            continue
-        x, mean = np.asarray(value[0], float), np.asarray(value[1], float)
-        for names, (gx, gmean, _) in groups:
-            if gx.shape == x.shape and np.allclose(gx, x) and np.allclose(gmean, mean,
-                                                                          atol=atol, rtol=0):
-                names.append(label)
-                break
-        else:
-            groups.append(([label], (x, mean, value)))
-    for names, (_, _, value) in groups:
-        label = names[0] if len(names) == 1 else (
-            "exact optimum: " + " = ".join(_exact_name(n) for n in names))
-        out[label] = value
+    out = {label: value for label, value in series.items() if "(exact)" not in label}
+    for label, names in exact_groups(series, atol).items():
+        out[label] = series[names[0]]
     return out
 
 

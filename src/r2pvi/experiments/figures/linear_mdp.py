@@ -93,10 +93,33 @@ def _replicated(settings, algorithms, qs, extra_tasks=()):
     return tasks + list(extra_tasks)
 
 
+def _merge_exact_rows(rows):
+    """Exact optima with identical values on every q share one row (as in the plot)."""
+    from ..plotting import exact_groups
+
+    exact: dict = {}
+    for r in rows:
+        if r["kind"] == "exact":
+            x, v, _ = exact.setdefault(r["algorithm"], ([], [], None))
+            x.append(r["q"])
+            v.append(r["value"])
+    rename = {old: new for new, olds in exact_groups(exact).items() for old in olds}
+    out, seen = [], set()
+    for r in rows:
+        if r["kind"] == "exact":
+            r = dict(r, algorithm=rename[r["algorithm"]])
+            if (r["algorithm"], r["q"]) in seen:
+                continue
+            seen.add((r["algorithm"], r["q"]))
+        out.append(r)
+    return out
+
+
 def _table_by_q(rows, settings, columns=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0)):
     out = []
     for xi_norm in settings["xi_norms"]:
-        sub = [r for r in rows if r["xi_norm"] == xi_norm and r["q"] in columns]
+        sub = [r for r in _merge_exact_rows([r for r in rows if r["xi_norm"] == xi_norm])
+               if r["q"] in columns]  # merged on every q, shown on a few
         out.append(f"||xi||_1 = {xi_norm}: average return (mean±std over replications) by q")
         out.append(format_table(summarize(sub, ["algorithm", "q"]), "algorithm", "q"))
     return "\n".join(out)
