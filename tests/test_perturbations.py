@@ -151,6 +151,8 @@ def test_perturbation_errors():
         make_perturbed("FrozenLake-v1", gravity=3.0)
     env = make_perturbed("FrozenLake-v1", action_noise=0.5)  # noise alone works anywhere
     env.reset(seed=0)
+    with pytest.raises(ValueError, match="PerturbedEnv"):  # never silently nominal
+        episode_returns(gym.make("CartPole-v1"), "uniform", 2, reset_options={"gravity": 20.0})
 
 
 def test_native_cartpole_vector_env_perturbed_like_the_single_env():

@@ -212,6 +212,24 @@ def _vector_env(env, n_envs, n_episodes):
     )
 
 
+def _check_reset_options(venv, options: dict) -> None:
+    """Refuse perturbation options that the environment would silently ignore."""
+    from .perturbations import ACTION_NOISE, PARAMETERS
+
+    names = {ACTION_NOISE}.union(*(set(t) for t in PARAMETERS.values()))
+    asked = sorted(set(options) & names)
+    first = getattr(venv, "envs", [None])[0]
+    if not asked or first is None:
+        return
+    try:
+        first.get_wrapper_attr("set_params")
+    except AttributeError:
+        raise ValueError(
+            f"reset_options sets {asked}, but the environment does not read parameters at "
+            "reset: wrap it in r2pvi.envs.perturbations.PerturbedEnv (or make_perturbed)"
+        ) from None
+
+
 def _replicate(env):
     try:
         return copy.deepcopy(env)
@@ -237,6 +255,8 @@ def run_episodes(env, policy, n_episodes: int, *, seed=None, max_steps=None, n_e
     if reset_options is not None and not isinstance(reset_options, dict):
         raise TypeError(f"reset_options must be a dict or None, got {reset_options!r}")
     venv, per_episode, owned = _vector_env(env, n_envs, n_episodes)
+    if reset_options:
+        _check_reset_options(venv, reset_options)
     space = venv.single_action_space
     n_actions = int(space.n) if hasattr(space, "n") else None
     act = as_policy_function(policy, n_actions)
