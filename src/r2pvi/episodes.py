@@ -24,7 +24,9 @@ negative rewards (Acrobot, MountainCar pay -1 per step) are refused unless ``rew
 shifts them: adding ``c`` to every reward, and ``(H - h - 1) c`` to the absorbing state's
 value, adds ``(H - h) c`` to every policy's ``Q_h`` (and to its robust-regularized value:
 the duals commute with constants), so the greedy policies are the same and values in the
-original scale are ``Q_h - (H - h) c``. Returns measured in the environment are in the
+original scale are ``Q_h - (H - h) c`` (exactly on the model; on ridge estimates up to the
+shrinkage of ``gamma``, as ``E_hat[1]`` is slightly below 1). Set the estimator's ``r_max``
+to at least the largest shifted reward. Returns measured in the environment are in the
 original scale.
 """
 
