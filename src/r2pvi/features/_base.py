@@ -153,6 +153,15 @@ class ObservationTransformer:
         """Features of the observations ``X (n, D)``: ``(n, n_features_out_)``."""
         raise NotImplementedError
 
+    def save(self, path):
+        """Save the fitted map to a versioned ``.npz`` (no pickle); returns the path.
+
+        Load it with :func:`r2pvi.features.load_feature_map`.
+        """
+        from ._io import save_feature_map
+
+        return save_feature_map(self, path)
+
     def fit_transform(self, X, y=None):
         """``fit(X)`` then ``transform(X)``."""
         return self.fit(X).transform(X)

@@ -310,6 +310,12 @@ class ActionCrossing:
         out[np.arange(n)[:, None], a[:, None] * m + np.arange(m)] = psi
         return out
 
+    def save(self, path):
+        """Save the fitted crossing (its observation map and ``n_actions``); returns the path."""
+        from ._io import save_feature_map
+
+        return save_feature_map(self, path)
+
     @property
     def n_features_out_(self) -> int:
         """``d = n_actions * m``."""
