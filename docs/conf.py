@@ -164,13 +164,24 @@ html_show_sourcelink = False
 
 
 # --------------------------------------------------------------------------- optional pages
-# Pages other branches add (the architecture for contributors, the numerical guarantees):
-# a toctree line "OPTIONAL_PAGES" becomes the ones that exist, so the site includes them as
-# soon as they are merged and builds without them meanwhile.
+# Pages other branches add (the architecture for contributors, the numerical guarantees, the
+# classic-control benchmark, ...): a toctree line "OPTIONAL_PAGES" becomes the ones that exist,
+# so the site includes them as soon as they are merged and builds without them meanwhile. The
+# main index also picks up any other top-level page that no toctree lists yet.
 OPTIONAL_PAGES = {
     "index": ["architecture"],
-    "user_guide/index": ["../numerical-guarantees", "../numerical-guarantees-constrained"],
+    "user_guide/index": ["../your-own-task", "../numerical-guarantees",
+                         "../numerical-guarantees-constrained", "../classic-control"],
 }
+
+
+def _listed_pages() -> set[str]:
+    """Top-level page names mentioned in the hand-written toctrees and OPTIONAL_PAGES."""
+    names = {Path(p).name for pages in OPTIONAL_PAGES.values() for p in pages}
+    for doc in ("index.md", "user_guide/index.md"):
+        names |= {line.strip().removeprefix("../") for line in (HERE / doc).read_text()
+                  .splitlines()}
+    return names
 
 
 def _optional_pages(app, docname, source):
@@ -179,6 +190,10 @@ def _optional_pages(app, docname, source):
     base = (HERE / docname).parent
     present = [page for page in OPTIONAL_PAGES[docname]
                if (base / f"{page}.md").exists() or (base / f"{page}.rst").exists()]
+    if docname == "index":
+        listed = _listed_pages()
+        present += sorted(p.stem for p in HERE.glob("*.md")
+                          if p.stem not in listed and p.stem != "index")
     source[0] = source[0].replace("OPTIONAL_PAGES\n", "".join(f"{p}\n" for p in present))
 
 
