@@ -81,7 +81,7 @@ class NormalizedRBF(ObservationTransformer):
                     f"centers must be a finite (m, D={D}) array of observation points, "
                     f"got shape {c.shape}"
                 )
-            self.centers_ = (c - self.low_) / self.width_
+            self.centers_ = self._unit(c)
             if self.bandwidth is None:
                 if len(c) == 1:
                     sigma = np.ones(D)
