@@ -16,6 +16,7 @@ from .._compat import SklearnCompatMixin, not_fitted_error
 from .._io import file_array, file_error, load_npz, save_npz
 from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
+from ..duals.operators import GramMatrixError, cholesky_gram
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
@@ -121,16 +122,19 @@ class LinearEstimator(SklearnCompatMixin):
 
     # ------------------------------------------------------------------ fitting
     def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None):
-        return backward_induction(
-            dataset,
-            self._make_rule(params),
-            beta=params["beta"],
-            gamma=params["gamma"],
-            penalty=params["penalty"],
-            r_max=params["r_max"],
-            reward_weights=params["reward_weights"],
-            sample_weights=sample_weights,
-        )
+        try:
+            return backward_induction(
+                dataset,
+                self._make_rule(params),
+                beta=params["beta"],
+                gamma=params["gamma"],
+                penalty=params["penalty"],
+                r_max=params["r_max"],
+                reward_weights=params["reward_weights"],
+                sample_weights=sample_weights,
+            )
+        except GramMatrixError as exc:
+            raise _gram_error_with_step(exc, dataset, params["gamma"], sample_weights) from None
 
     def _fit_model(self, dataset: OfflineDataset, params: dict) -> FittedModel:
         """The fitted model; variance-aware subclasses override this with two passes."""
@@ -274,6 +278,17 @@ def _jsonable(name, value):
     if isinstance(value, numbers.Real):
         return float(value)
     raise TypeError(f"cannot save parameter {name}={value!r} of type {type(value).__name__}")
+
+
+def _gram_error_with_step(exc, dataset, gamma, sample_weights) -> GramMatrixError:
+    """The same error, naming the (0-based) step whose Gram matrix has no Cholesky factor."""
+    for h in range(dataset.horizon - 1, -1, -1):
+        sw = None if sample_weights is None else sample_weights[h]
+        try:
+            cholesky_gram(dataset.step(h)[0], gamma, sw)
+        except GramMatrixError:
+            return GramMatrixError(f"step h = {h} (0-based): {exc}")
+    return exc
 
 
 class _Shape:

@@ -16,6 +16,7 @@ from .operators import (
     FactorExpectation,
     RidgeExpectation,
     TruncationCumulants,
+    GramMatrixError,
     cholesky_gram,
 )
 from .regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
@@ -34,6 +35,7 @@ __all__ = [
     "RidgeExpectation",
     "TruncationCumulants",
     "cholesky_gram",
+    "GramMatrixError",
     "chi2_regularized",
     "f_regularized",
     "kl_regularized",
