@@ -14,6 +14,7 @@ import numpy as np
 
 from .._compat import SklearnCompatMixin, not_fitted_error
 from .._io import file_array, file_error, load_npz, save_npz
+from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
 from ..duals.operators import GramMatrixError, cholesky_gram
@@ -149,7 +150,8 @@ class LinearEstimator(SklearnCompatMixin):
             )
         params = self._validate_common(dataset)
         params.update(self._validate_extra(dataset))
-        model = self._fit_model(dataset, params)
+        with limit_blas():  # one BLAS thread by default: see r2pvi._threads
+            model = self._fit_model(dataset, params)
         self._set_fitted(model, params, dataset.n_actions)
         return self
 

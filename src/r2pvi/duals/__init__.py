@@ -14,9 +14,9 @@ from .fdivergence import (
 from .operators import (
     ExpectationOperator,
     FactorExpectation,
+    GramMatrixError,
     RidgeExpectation,
     TruncationCumulants,
-    GramMatrixError,
     cholesky_gram,
 )
 from .regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
