@@ -62,7 +62,8 @@ def __getattr__(name):
 
 
 class SklearnCompatMixin:
-    """``__sklearn_is_fitted__`` and ``__sklearn_tags__`` for the r2pvi estimators.
+    """``__sklearn_is_fitted__``, ``__sklearn_tags__`` and ``_repr_html_`` for the r2pvi
+    estimators (the last two import scikit-learn when called).
 
     A subclass names the attribute that ``fit`` sets in ``_fitted_marker``.
     """
@@ -71,6 +72,14 @@ class SklearnCompatMixin:
 
     def __sklearn_is_fitted__(self) -> bool:
         return hasattr(self, self._fitted_marker)
+
+    def _repr_html_(self):
+        """The HTML repr of scikit-learn (notebooks) when it is installed, else None."""
+        try:
+            from sklearn.utils import estimator_html_repr
+        except ImportError:
+            return None
+        return estimator_html_repr(self)
 
     def __sklearn_tags__(self):
         from sklearn.utils import InputTags, Tags, TargetTags
