@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import r2pvi
 from r2pvi import DRPVI, PEVI, R2PVI, OfflineDataset, cressie_read, load
@@ -298,3 +300,38 @@ def test_every_builtin_divergence_and_fitted_estimator_pickles(data):
     back = pickle.loads(pickle.dumps(est))
     phi_all = data.next_phi[:5, 0]
     np.testing.assert_array_equal(back.q_values(phi_all, 1), est.q_values(phi_all, 1))
+
+
+@pytest.fixture(scope="module")
+def good_model(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("good")
+    return R2PVI("kl", 0.5, beta=0.1).fit(make_data(K=20, d=3)).save(folder / "good.npz")
+
+
+@settings(max_examples=int(os.environ.get("R2PVI_DAMAGE_EXAMPLES", 60)), deadline=None)
+@given(st.data())
+def test_a_damaged_file_loads_identically_or_raises_a_named_value_error(
+    tmp_path_factory, good_model, data
+):
+    # Property: whatever bytes are flipped or cut, load gives back the same model or a
+    # ValueError naming the file, never another exception or a silently different model.
+    tmp = tmp_path_factory.mktemp("damaged")
+    good = good_model.read_bytes()
+    raw = bytearray(good)
+    if data.draw(st.booleans(), label="truncate"):
+        raw = raw[: data.draw(st.integers(0, len(raw) - 1), label="cut")]
+    else:
+        for _ in range(data.draw(st.integers(1, 4), label="flips")):
+            i = data.draw(st.integers(0, len(raw) - 1), label="offset")
+            raw[i] ^= data.draw(st.integers(1, 255), label="xor")
+    path = tmp / "m.npz"
+    path.write_bytes(bytes(raw))
+    try:
+        est = load(path)
+    except ValueError as exc:
+        assert str(path) in str(exc)
+    else:
+        ref = load(good_model)
+        for name in ("weights_", "reward_weights_", "gram_cholesky_", "gram_inv_diag_"):
+            np.testing.assert_array_equal(getattr(est, name), getattr(ref, name))
+        assert est.get_params()["lam"] == ref.get_params()["lam"]

@@ -12,8 +12,6 @@ import contextlib
 import json
 import os
 import secrets
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -83,7 +81,8 @@ def _read(path: Path) -> tuple[dict[str, np.ndarray], str]:
         raise
     except ValueError as exc:  # object arrays (pickles) are refused by allow_pickle=False
         raise file_error(path, None, f"holds an array r2pvi cannot read safely: {exc}") from None
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, KeyError) as exc:
+    except Exception as exc:  # BadZipFile, zlib.error, EOFError, OSError, NotImplementedError
+        # (an unknown compression method), RuntimeError (encrypted), MemoryError, ...
         raise file_error(
             path, None, f"is damaged or truncated ({type(exc).__name__}: {exc})"
         ) from None
