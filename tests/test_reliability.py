@@ -335,3 +335,50 @@ def test_a_damaged_file_loads_identically_or_raises_a_named_value_error(
         for name in ("weights_", "reward_weights_", "gram_cholesky_", "gram_inv_diag_"):
             np.testing.assert_array_equal(getattr(est, name), getattr(ref, name))
         assert est.get_params()["lam"] == ref.get_params()["lam"]
+
+
+# --------------------------------------------------------------------------- BLAS threads
+def _blas_threads_seen_by_fit(monkeypatch, data):
+    from threadpoolctl import threadpool_info
+
+    from r2pvi.algorithms import pevi
+
+    seen = []
+    original = pevi.RidgeRule.__call__
+
+    def spy(self, E, v, ctx):
+        seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+        return original(self, E, v, ctx)
+
+    monkeypatch.setattr(pevi.RidgeRule, "__call__", spy)
+    PEVI().fit(data)
+    return set(seen)
+
+
+def test_a_fit_uses_one_blas_thread_unless_told_otherwise(monkeypatch, data):
+    from threadpoolctl import threadpool_limits
+
+    from r2pvi.experiments.runner import Task, run_tasks
+
+    with threadpool_limits(2, user_api="blas"):  # the caller's setting (2 cores here or not)
+        monkeypatch.delenv("R2PVI_BLAS_THREADS", raising=False)
+        assert _blas_threads_seen_by_fit(monkeypatch, data) == {1}
+        monkeypatch.setenv("R2PVI_BLAS_THREADS", "0")  # leave BLAS alone
+        assert _blas_threads_seen_by_fit(monkeypatch, data) == {2}
+        monkeypatch.setenv("R2PVI_BLAS_THREADS", "3")
+        assert _blas_threads_seen_by_fit(monkeypatch, data) == {3}
+        monkeypatch.setenv("R2PVI_BLAS_THREADS", "many")
+        with pytest.raises(ValueError, match="R2PVI_BLAS_THREADS must be an integer >= 0"):
+            PEVI().fit(data)
+        monkeypatch.delenv("R2PVI_BLAS_THREADS")
+
+        def task(seq):
+            from threadpoolctl import threadpool_info
+
+            return [{"t": i["num_threads"]} for i in threadpool_info()
+                    if i["user_api"] == "blas"]
+
+        assert {r["t"] for r in run_tasks([Task(task)] * 2)} == {1}
+        assert {r["t"] for r in run_tasks([Task(task)], blas_threads=0)} == {2}
+    with pytest.raises(ValueError, match="jobs must be an integer >= 1, or -1"):
+        run_tasks([Task(task)], jobs=0)
