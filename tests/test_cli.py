@@ -67,6 +67,9 @@ USAGE_CASES = [
     (["demo", "--trajectories", "-5"], "--trajectories must be >= 1"),
     (["demo", "--seed", "-3"], "--seed must be >= 0"),
     (["bogus"], "invalid choice: 'bogus'"),
+    (["reproduce", "fig1a", "--xi-norms", "0.5"], "'delta' and xi_norm: delta = 0.3 and xi_norm"
+                                                  " = 0.5 give features off the simplex"),
+    (["reproduce", "rates", "--set", "xi_norm=0.9"], "'mdp_delta' and xi_norm"),
 ]
 
 

@@ -245,4 +245,22 @@ def check_settings(figure: str, settings: dict) -> dict:
             problem = rule(name, v)
             if problem:
                 raise ValueError(f"{figure}: setting {name!r} {problem}")
+    _check_simulated_mdp(figure, settings)
     return settings
+
+
+def _check_simulated_mdp(figure: str, s: dict) -> None:
+    """The simulated linear MDP's joint constraint ``xi_norm <= delta <= 1 - xi_norm``."""
+    from ..envs import SimulatedLinearMDP
+
+    if "xi_norms" in s and "delta" in s:
+        pairs = [("delta", s["delta"], x) for x in s["xi_norms"]]
+    elif "xi_norm" in s and "mdp_delta" in s and "simulated" in s.get("envs", ()):
+        pairs = [("mdp_delta", s["mdp_delta"], s["xi_norm"])]
+    else:
+        return
+    for name, delta, xi_norm in pairs:
+        try:
+            SimulatedLinearMDP(delta=delta, xi_norm=xi_norm)
+        except ValueError as exc:
+            raise ValueError(f"{figure}: settings {name!r} and xi_norm: {exc}") from None
