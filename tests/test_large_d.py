@@ -384,3 +384,22 @@ def test_unused_sparse_features_are_reduced_exactly(name):
     finally:
         type(rule).__call__ = real_call
     assert seen and max(seen) <= 8 + 3
+
+
+def test_tampered_elliptical_factors_are_named(tmp_path):
+    rng = np.random.default_rng(16)
+    ds = OfflineDataset.from_features(*_data(rng, 10, 2, 5))
+    good = PEVI(beta=0.3).fit(ds).save(tmp_path / "good")
+    import json
+
+    with np.load(good, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    meta = json.loads(str(arrays.pop("__r2pvi_meta__")))
+    for field, change in (("elliptical_index", lambda a, m: m.update(elliptical_index=[0, 5])),
+                          ("elliptical_r", lambda a, m: a.update(elliptical_r=np.ones((2, 3))))):
+        a, m = dict(arrays), json.loads(json.dumps(meta))
+        change(a, m)
+        kind, version = m.pop("kind"), m.pop("format_version")
+        bad = save_npz(tmp_path / f"{field}.npz", kind, version, a, m)
+        with pytest.raises(ValueError, match=field):
+            load(bad)
