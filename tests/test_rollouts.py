@@ -100,7 +100,7 @@ def test_learned_policy_acts_batched_and_beyond_its_horizon():
     mean, se = evaluate_policy(gym.make("CartPole-v1"), policy, 6, seed=0, max_steps=50,
                                n_envs=3)
     assert 0 < mean <= 50 and se >= 0
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(ValueError, match="not fitted"):  # NotFittedError
         PEVI().as_policy(fmap)
 
 
