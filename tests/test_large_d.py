@@ -109,6 +109,7 @@ def test_primal_and_dual_factors_agree_with_the_dense_inverse(n, d, seed, log_ga
 
 def test_form_is_chosen_from_the_shapes():
     assert choose_form(300, 1152) == "dual" and choose_form(10_000, 30) == "primal"
+    assert choose_form(1000, 1152) == "dual" and choose_form(1152, 1152) == "primal"
     assert choose_form(1000, 20_000, sparse=True) == "dual"
     assert GramFactor(np.ones((3, 8)), 1.0).form == "dual"
     assert GramFactor(np.ones((8, 3)), 1.0).form == "primal"
