@@ -10,6 +10,7 @@ from . import envs, evaluation
 from .algorithms import DRPVI, DRVIL, PEVI, R2PVI, LinearEstimator
 from .algorithms import load_estimator as load
 from .data import OfflineDataset, SimplexFeatureWarning
+from .storage import DatasetWriter
 from .duals import FDivergence, cressie_read
 
 try:
@@ -21,6 +22,7 @@ __all__ = [
     "envs",
     "evaluation",
     "OfflineDataset",
+    "DatasetWriter",
     "SimplexFeatureWarning",
     "FDivergence",
     "cressie_read",
