@@ -355,7 +355,7 @@ def _dask_values(nxt: StoredNext, h, qmax):
     def block(f, k=None):
         f = np.asarray(f, dtype=np.float64)
         nn = bool((f >= 0).all()) if nonneg is None else nonneg
-        return qmax(f, None if k is None else np.asarray(k, dtype=np.float64), nn)
+        return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64), nn)
 
     if nxt.next_values is None:
         v = da.map_blocks(block, feats, drop_axis=[1, 2], dtype=np.float64)
@@ -839,7 +839,8 @@ class DatasetWriter:
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
-            self.close()
+            if self._tmp is not None:
+                self.close()
         else:
             self.abort()
         return False
