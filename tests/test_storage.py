@@ -280,21 +280,31 @@ def test_feature_map_next_states_are_computed_chunk_by_chunk(tmp_path):
     k = 700
     obs, nxt = rng.random((k, H, 1)), rng.random((k, H, 1))
     act = rng.integers(A, size=(k, H))
-    phi = fmap(obs.reshape(-1, 1), act.reshape(-1)).reshape(k, H, D)
     rewards = obs[..., 0]
+
     def exercise(o):  # action 0 stops with a known payoff above 0.8
         out = np.full((o.shape[0], A), np.nan)
         out[:, 0] = np.where(o[:, 0] > 0.8, o[:, 0], np.nan)
         return out
 
-    ds = OfflineDataset.from_feature_map(phi, rewards, nxt, fmap, A, exercise)
+    ds = OfflineDataset.from_observations(obs, act, rewards, nxt, fmap, A, exercise)
     ds._source.chunk = 64
-    dense = OfflineDataset.from_features(phi, rewards, ds.next_phi, ds.next_values)
+    dense = OfflineDataset.from_transitions(obs, act, rewards, nxt, fmap, A, exercise)
+    np.testing.assert_allclose(ds.phi, dense.phi, rtol=0, atol=1e-15)
     assert ds.has_known_values and not np.isnan(ds.next_values[:, 0, 0]).all()
     for name in ("TV", "KL", "chi2"):
         assert_same_fit(ESTIMATORS[name]().fit(ds), ESTIMATORS[name]().fit(dense))
-    saved = OfflineDataset.open(ds.save(tmp_path / "m"))  # saved with the features computed
+    path = ds.save(tmp_path / "m")  # the observations are stored, not the features
+    assert not (path / "phi.npy").exists() and not (path / "next_phi.npy").exists()
+    with pytest.raises(ValueError, match="pass the feature_map"):
+        OfflineDataset.open(path)
+    saved = OfflineDataset.open(path, feature_map=fmap)
+    saved._source.chunk = 100
     assert_same_fit(ESTIMATORS["TV"]().fit(saved), ESTIMATORS["TV"]().fit(dense))
+    assert_same_fit(ESTIMATORS["TV"]().fit(saved.subset([5, 2, 9])),
+                    ESTIMATORS["TV"]().fit(dense.subset([5, 2, 9])))
+    with pytest.raises(ValueError, match=r"actions must lie in \[0, 3\)"):
+        OfflineDataset.from_observations(obs, act + 1, rewards, nxt, fmap, A)
 
 
 @pytest.fixture(scope="module")

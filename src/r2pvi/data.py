@@ -255,28 +255,35 @@ class OfflineDataset:
         return cls(_source=source)
 
     @classmethod
-    def from_feature_map(
-        cls, phi, rewards, next_observations, feature_map, n_actions: int,
-        known_values=None, *, n_features=None, check_simplex: bool = True, dtype=None,
+    def from_observations(
+        cls, states, actions, rewards, next_states, feature_map, n_actions: int,
+        next_values=None, *, check_simplex: bool = True,
     ) -> OfflineDataset:
-        """Stored next observations and a feature map evaluated chunk by chunk while fitting.
+        """Stored observations and a feature map evaluated chunk by chunk while fitting.
 
-        Only the (low-dimensional) next observations are stored; the next-state features
-        ``feature_map(obs (n, ...), actions (n,)) -> (n, d)`` are computed a chunk of
-        trajectories at a time, each step, and never held for the whole dataset.
+        The arguments of :meth:`from_transitions`, but no feature is stored: the taken-action
+        features ``feature_map(states[:, h], actions[:, h])`` and every action's features at
+        the next states are computed a chunk of trajectories at a time, each step, and never
+        held for the whole dataset (a step's ``(K, d)`` taken-action features are). Arrays
+        (memory maps included) are kept as step-major views when they are laid out so, else
+        copied once. :meth:`save` stores the observations; :meth:`open` then needs the same
+        ``feature_map``.
 
         Parameters
         ----------
-        phi : array_like (K, H, d)
-            Features of the taken actions.
+        states, next_states : array_like (K, H, ...)
+            Observations ``s_h`` and ``s_{h+1}`` (row ``h = H-1`` of ``next_states`` is never
+            used).
+        actions : array_like of int (K, H)
+            Taken actions, indices in ``[0, n_actions)``.
         rewards : array_like (K, H)
-        next_observations : array_like (K, H, ...)
-            Next observations (row ``h = H-1`` is never used).
         feature_map : callable
-            ``feature_map(observations, actions) -> (n, d)``.
+            ``feature_map(observations (n, ...), actions (n,)) -> (n, d)``.
         n_actions : int
-        known_values : callable, optional
-            ``known_values(observations) -> (n, A)`` known action values (NaN: learn).
+        next_values : callable, optional
+            ``next_values(next_states (n, ...)) -> (n, A)``, known action values (NaN: learn).
+        check_simplex : bool, default True
+            Warn when the features of the first chunk of trajectories leave the simplex.
 
         Examples
         --------
@@ -286,37 +293,55 @@ class OfflineDataset:
         ...                               1 - x[:, 0]], axis=1)
         >>> rng = np.random.default_rng(0)
         >>> obs, nxt = rng.random((20, 3, 1)), rng.random((20, 3, 1))
-        >>> a = rng.integers(2, size=(20, 3))
-        >>> phi = fmap(obs.reshape(-1, 1), a.reshape(-1)).reshape(20, 3, 3)
-        >>> ds = OfflineDataset.from_feature_map(phi, rng.random((20, 3)), nxt, fmap, 2)
-        >>> ds.next_phi.shape
-        (20, 3, 2, 3)
+        >>> ds = OfflineDataset.from_observations(obs, rng.integers(2, size=(20, 3)),
+        ...                                       rng.random((20, 3)), nxt, fmap, 2)
+        >>> ds.phi.shape, ds.next_phi.shape
+        ((20, 3, 3), (20, 3, 2, 3))
         """
         if not callable(feature_map):
             raise TypeError("feature_map must be callable: feature_map(states, actions) -> (n, d)")
-        if known_values is not None and not callable(known_values):
-            raise TypeError("known_values must be callable: known_values(observations) -> (n, A)")
-        if isinstance(n_actions, bool) or not isinstance(n_actions, int | np.integer) \
-                or n_actions < 1:
-            raise ValueError(f"n_actions must be an integer >= 1, got {n_actions!r}")
-        p = _st.step_major(phi, "phi", 3, dtype)
-        H, K, d = p.shape
-        if K == 0 or H == 0 or d == 0:
-            raise ValueError(f"phi must have K, H, d >= 1, got {(K, H, d)}")
+        if next_values is not None and not callable(next_values):
+            raise TypeError("next_values must be callable: next_values(next_states) -> (n, A)")
+        if isinstance(n_actions, bool) or not isinstance(n_actions, int | np.integer):
+            raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
+        if n_actions < 1:
+            raise ValueError(f"n_actions must be >= 1, got {n_actions}")
+        act = np.asarray(actions)
+        if act.ndim != 2:
+            raise ValueError(f"actions must have shape (K, H), got {act.shape}")
+        if not np.issubdtype(act.dtype, np.integer):
+            raise TypeError(f"actions must be integer action indices, got dtype {act.dtype}")
+        K, H = act.shape
+        if K == 0 or H == 0:
+            raise ValueError(f"actions must have K >= 1 and H >= 1, got {act.shape}")
+        obs, nobs = np.asarray(states), np.asarray(next_states)
+        if obs.shape[:2] != (K, H) or nobs.shape[:2] != (K, H):
+            raise ValueError(
+                f"states and next_states must start with (K, H) = {(K, H)} like actions, got "
+                f"{obs.shape} and {nobs.shape}")
         r = _st.step_major(rewards, "rewards", 2, np.float64)
         if r.shape != (H, K):
             raise ValueError(f"rewards must have shape (K, H) = {(K, H)}, got {np.shape(rewards)}")
-        obs = np.asarray(next_observations)
-        if obs.shape[:2] != (K, H):
-            raise ValueError(
-                f"next_observations must start with (K, H) = {(K, H)}, got {obs.shape}")
-        nonneg_phi, _, _ = _st.validate_source(p, r, None, None, check_simplex, stacklevel=3)
-        sm = obs.swapaxes(0, 1)
-        if not sm.flags.c_contiguous:
-            sm = np.ascontiguousarray(sm)
-        nxt = _st.MapNext(_st.ArrayField(sm), feature_map, int(n_actions), d, known_values)
-        return cls(_source=_st.StepSource(_st.ArrayField(p), _st.ArrayField(r), nxt, {},
-                                          nonneg_phi))
+        if not all(np.isfinite(r[h]).all() for h in range(H)):
+            raise ValueError("rewards contains NaN or infinite entries; clean the data first")
+        sm = [_st.ArrayField(_st.layout_step_major(x)) for x in (obs, act, nobs)]
+        for h in range(H):
+            for _, _, rows in sm[1].chunks(h, _st.CHUNK):
+                if rows.size and (rows.min() < 0 or rows.max() >= n_actions):
+                    raise ValueError(f"actions must lie in [0, {n_actions}); got values outside")
+        probe = np.asarray(feature_map(sm[0].read(0, 0, 1), sm[1].read(0, 0, 1).astype(np.int64)))
+        if probe.ndim != 2 or probe.shape[0] != 1 or probe.shape[1] < 1:
+            raise ValueError(f"feature_map must return (n, d) for n observations, got "
+                             f"{probe.shape} for one")
+        d = probe.shape[1]
+        phi = _st.MappedField(sm[0], sm[1], feature_map, d)
+        nxt = _st.MapNext(sm[2], feature_map, int(n_actions), d, next_values)
+        if check_simplex:
+            first = phi.read(0, 0, _st.CHUNK)
+            check_simplex_features(first, "phi")
+            if H > 1:
+                check_simplex_features(nxt.features(0, 0, _st.CHUNK), "next_phi")
+        return cls(_source=_st.StepSource(phi, _st.ArrayField(r), nxt, {}))
 
     @classmethod
     def from_dask(cls, phi, rewards, next_phi, next_values=None) -> OfflineDataset:
@@ -640,10 +665,12 @@ class OfflineDataset:
         return save_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION, arrays, {})
 
     @classmethod
-    def open(cls, path) -> OfflineDataset:
+    def open(cls, path, *, feature_map=None) -> OfflineDataset:
         """Open a dataset directory written by :meth:`save` or :class:`~r2pvi.DatasetWriter`
-        lazily: only the headers are read; a fit reads one step at a time, in chunks."""
-        return cls(_source=_st.open_directory(path))
+        lazily: only the headers are read; a fit reads one step at a time, in chunks.
+        ``feature_map`` is needed (and only then) for a dataset stored as observations
+        (see :meth:`from_observations`)."""
+        return cls(_source=_st.open_directory(path, feature_map))
 
     @classmethod
     def load(cls, path) -> OfflineDataset:

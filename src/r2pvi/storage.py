@@ -52,6 +52,7 @@ __all__ = [
     "StoredNext",
     "TableNext",
     "MapNext",
+    "MappedField",
     "StepSource",
     "DatasetWriter",
     "open_directory",
@@ -205,6 +206,31 @@ class DaskField(Field):
             yield int(s), int(e), self.read(h, int(s), int(e))
 
 
+class MappedField(Field):
+    """Taken-action features computed from stored observations and actions by a feature map:
+    ``read(h, s, e) = feature_map(observations[h, s:e], actions[h, s:e])`` ``(n, d)``."""
+
+    def __init__(self, observations: Field, actions: Field, feature_map, n_features: int):
+        self.observations, self.actions, self.feature_map = observations, actions, feature_map
+        H, K = observations.shape[:2]
+        self.shape, self.dtype = (H, K, int(n_features)), np.dtype(np.float64)
+
+    def read(self, h, start=0, stop=None):
+        obs = self.observations.read(h, start, stop)
+        act = np.asarray(self.actions.read(h, start, stop), dtype=np.int64)
+        out = np.asarray(self.feature_map(obs, act), dtype=np.float64)
+        if out.shape != (obs.shape[0], self.shape[2]):
+            raise ValueError(f"feature_map returned shape {out.shape} for {obs.shape[0]} "
+                             f"observations; expected (n, d) = ({obs.shape[0]}, {self.shape[2]})")
+        return out
+
+    def lazy(self):
+        return np.stack([self.read(h) for h in range(self.shape[0])])
+
+    def take(self, idx):
+        return self.lazy()[:, idx]
+
+
 # --------------------------------------------------------------------------- next states
 class NextStates:
     """Where the next-state features come from; the engine only asks for values."""
@@ -334,6 +360,8 @@ class MapNext(NextStates):
     def known(self, h, start=0, stop=None):
         if self.known_values is None:
             return None
+        if isinstance(self.known_values, Field):  # stored known values (H, K, A)
+            return _as_float64(self.known_values.read(h, start, stop))
         obs = self.observations.read(h, start, stop)
         kv = np.asarray(self.known_values(obs), dtype=float)
         if kv.shape != (obs.shape[0], self.n_actions):
@@ -341,8 +369,11 @@ class MapNext(NextStates):
         return kv
 
     def take(self, idx):
+        kv = self.known_values
+        if isinstance(kv, Field):
+            kv = ArrayField(kv.take(idx))
         return MapNext(ArrayField(self.observations.take(idx)), self.feature_map,
-                       self.n_actions, self.n_features, self.known_values)
+                       self.n_actions, self.n_features, kv)
 
 
 def _dask_values(nxt: StoredNext, h, qmax):
@@ -410,7 +441,12 @@ class StepSource:
 
     def take(self, idx) -> StepSource:
         extras = {k: v[idx] for k, v in self.extras.items()}
-        return StepSource(ArrayField(self.phi.take(idx)), ArrayField(self.rewards.take(idx)),
+        phi = self.phi
+        phi = MappedField(ArrayField(phi.observations.take(idx)),
+                          ArrayField(phi.actions.take(idx)), phi.feature_map,
+                          phi.shape[2]) if isinstance(phi, MappedField) else ArrayField(
+                              phi.take(idx))
+        return StepSource(phi, ArrayField(self.rewards.take(idx)),
                           self.next.take(idx), extras, self.nonnegative_phi, self.chunk)
 
 
@@ -459,6 +495,13 @@ def step_major(x, name: str, ndim: int, dtype=None) -> np.ndarray:
     if sm.dtype == target and sm.flags.c_contiguous:
         return sm
     return np.ascontiguousarray(sm, dtype=target)
+
+
+def layout_step_major(x: np.ndarray) -> np.ndarray:
+    """``x (K, H, ...)`` as a C-contiguous ``(H, K, ...)`` array of any dtype: a view when
+    it already is one (e.g. a transposed memory map), else one copy."""
+    sm = np.asarray(x).swapaxes(0, 1)
+    return sm if sm.flags.c_contiguous else np.ascontiguousarray(sm)
 
 
 def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
@@ -534,8 +577,11 @@ def _manifest(path: Path) -> dict:
     return header
 
 
-def open_directory(path) -> StepSource:
-    """A :class:`StepSource` over a dataset directory; nothing is read but the headers."""
+def open_directory(path, feature_map=None) -> StepSource:
+    """A :class:`StepSource` over a dataset directory; nothing is read but the headers.
+
+    A dataset stored as observations (``"phi": "map"`` or ``"next": "map"`` in the
+    manifest) needs the ``feature_map`` it was built with."""
     path = Path(os.fspath(path))
     if not path.exists():
         raise FileNotFoundError(f"no such dataset directory: {path}")
@@ -549,9 +595,24 @@ def open_directory(path) -> StepSource:
                              f"{mf['shapes'][name]}")
         return f
 
-    phi, rewards = field("phi"), field("rewards")
-    if mf["next"] == "stored":
-        nxt: NextStates = StoredNext(field("next_phi"),
+    needs_map = mf.get("phi", "stored") == "map" or mf["next"] == "map"
+    if needs_map and not callable(feature_map):
+        raise ValueError(
+            f"{path} stores observations, not features: pass the feature_map it was built "
+            "with, OfflineDataset.open(path, feature_map=f) with f(observations, actions) -> "
+            "(n, d)")
+    d = int(mf["n_features"])
+    if mf.get("phi", "stored") == "map":
+        phi: Field = MappedField(field("observations"), field("actions"), feature_map, d)
+    else:
+        phi = field("phi")
+    rewards = field("rewards")
+    if mf["next"] == "map":
+        kv = field("next_values") if "next_values" in files else None
+        nxt: NextStates = MapNext(field("next_observations"), feature_map,
+                                  int(mf["n_actions"]), d, kv)
+    elif mf["next"] == "stored":
+        nxt = StoredNext(field("next_phi"),
                                      field("next_values") if "next_values" in files else None,
                                      mf.get("nonnegative_next_phi"))
     elif mf["next"] == "table":
@@ -632,13 +693,25 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
             shapes[name] = list(field.shape)
             _stream_field(tmp / files[name], field, dt, source.chunk, transform)
 
-        put("phi", source.phi, store)
+        phi_kind = "stored"
+        if isinstance(source.phi, MappedField):  # store what it is computed from
+            phi_kind = "map"
+            put("observations", source.phi.observations, source.phi.observations.dtype)
+            put("actions", source.phi.actions, source.phi.actions.dtype)
+        else:
+            put("phi", source.phi, store)
         put("rewards", source.rewards, np.float64)
         nxt = source.next
         H, K, d = source.phi.shape
         A = nxt.n_actions
-        meta = {"nonnegative_phi": source.nonnegative_phi}
-        if isinstance(nxt, TableNext):
+        meta = {"nonnegative_phi": source.nonnegative_phi, "phi": phi_kind}
+        if isinstance(nxt, MapNext):
+            kind = "map"
+            put("next_observations", nxt.observations, nxt.observations.dtype)
+            if nxt.has_known_values:
+                put("next_values", _Computed((H, K, A), np.float64,
+                                             lambda h, s, e: nxt.known(h, s, e)), np.float64)
+        elif isinstance(nxt, TableNext):
             kind = "table"
             put("next_index", nxt.index, np.int64)
             files["next_table"] = "next_table.npy"
