@@ -78,7 +78,7 @@ def test_fit_is_the_same_in_memory_on_disk_and_in_any_chunking(stored, name):
     try:
         assert_same_fit(ESTIMATORS[name]().fit(mem), ref)
     finally:
-        mem._source.chunk = 1 << 15
+        mem._source.chunk = r2pvi.storage.CHUNK
 
 
 @settings(max_examples=15, deadline=None)

@@ -197,9 +197,10 @@ def backward_induction(
     inv_diags = np.zeros((H, d))
     next_state_values = np.zeros((H, dataset.n_trajectories))
     v_upper = H * r_max
+    step_buffer = None  # one step's (K, d) float64 features, reused when they are read
     try:
         for h in range(H - 1, -1, -1):
-            phi = source.phi_step(h)  # (K, d) float64; the next-state data is read by chunk
+            phi = step_buffer = source.phi_step(h, step_buffer)  # next-state data: by chunk
             rewards = source.rewards_step(h)
             sw = None if sample_weights is None else sample_weights[h]
             chol = cholesky_gram(phi, gamma, sw)

@@ -64,7 +64,7 @@ __all__ = [
 FORMAT_VERSION = 2
 KIND = "r2pvi.OfflineDataset"
 MANIFEST = "manifest.json"
-CHUNK = 1 << 15  # trajectories per chunk when streaming a step
+CHUNK = 1 << 13  # trajectories per chunk when streaming a step (buffers of a few MB)
 _DTYPES = {"float32": np.float32, "float64": np.float64}
 
 
@@ -144,10 +144,12 @@ class FileField(Field):
             self._fd = os.open(self.path, os.O_RDONLY)
         return self._fd
 
-    def read(self, h, start=0, stop=None):
+    def read(self, h, start=0, stop=None, out=None):
         K = self.shape[1]
         stop = K if stop is None else min(stop, K)
-        out = np.empty((stop - start,) + self.shape[2:], dtype=self.dtype)
+        shape = (stop - start,) + self.shape[2:]
+        if out is None or out.shape != shape or out.dtype != self.dtype:
+            out = np.empty(shape, dtype=self.dtype)
         nbytes = out.nbytes
         if nbytes:
             pos = self.offset + (h * K + start) * self._row
@@ -280,9 +282,30 @@ class StoredNext(NextStates):
             self.next_values.read(h, start, stop))
 
     def values(self, h, qmax, n, chunk):
-        if isinstance(self.next_phi, DaskField):
+        field = self.next_phi
+        if isinstance(field, DaskField):
             return _dask_values(self, h, qmax)
-        return super().values(h, qmax, n, chunk)
+        # Two reused buffers (a chunk read in the storage type, then cast to float64): no
+        # fresh allocation, so no page faults, per chunk.
+        out = np.empty(n)
+        shape = (min(chunk, n),) + field.shape[2:]
+        if isinstance(field, FileField):
+            reads = _prefetched(field, h, n, chunk, shape)
+        else:
+            reads = ((s, min(n, s + chunk), field.read(h, s, min(n, s + chunk)))
+                     for s in range(0, n, chunk))
+        f64 = np.empty(shape)
+        for s, e, rows in reads:
+            if rows.dtype == np.float64 and rows.flags.c_contiguous:
+                feats = rows
+            else:
+                feats = f64[: e - s]
+                np.copyto(feats, rows)
+            nonneg = self.nonnegative
+            if nonneg is None:
+                nonneg = bool((feats >= 0).all())
+            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+        return out
 
     def take(self, idx):
         nv = None if self.next_values is None else ArrayField(self.next_values.take(idx))
@@ -376,6 +399,38 @@ class MapNext(NextStates):
                        self.n_actions, self.n_features, kv)
 
 
+_POOL = None
+
+
+def _reader_pool():
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = ThreadPoolExecutor(1, thread_name_prefix="r2pvi-read")
+    return _POOL
+
+
+def _prefetched(field: FileField, h, n, chunk, shape):
+    """``(start, stop, rows)`` over step ``h``, reading the next chunk (``pread`` releases the
+    GIL) while the caller computes on this one; two buffers, reused."""
+    bufs = [np.empty(shape, dtype=field.dtype), np.empty(shape, dtype=field.dtype)]
+    starts = list(range(0, n, chunk))
+    pool = _reader_pool()
+
+    def job(i):
+        s = starts[i]
+        e = min(n, s + chunk)
+        return field.read(h, s, e, out=bufs[i % 2][: e - s])
+
+    pending = pool.submit(job, 0)
+    for i, s in enumerate(starts):
+        rows = pending.result()
+        if i + 1 < len(starts):
+            pending = pool.submit(job, i + 1)
+        yield s, min(n, s + chunk), rows
+
+
 def _dask_values(nxt: StoredNext, h, qmax):
     """Next-state values computed on the Dask workers, one task per trajectory chunk."""
     import dask.array as da
@@ -423,13 +478,31 @@ class StepSource:
     def n_actions(self) -> int:
         return self.next.n_actions
 
-    def phi_step(self, h: int) -> np.ndarray:
-        """Step ``h``'s taken-action features ``(K, d)`` as float64 (a view when they are)."""
-        if isinstance(self.phi, ArrayField | DaskField):
-            return _as_float64(self.phi.read(h))
-        out = np.empty((self.n_trajectories, self.n_features))
-        for s, e, rows in self.phi.chunks(h, self.chunk):
-            out[s:e] = rows
+    def phi_step(self, h: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Step ``h``'s taken-action features ``(K, d)`` as float64: a view when they are
+        stored so in memory, else written into ``out`` (a reused buffer) or a new array."""
+        field = self.phi
+        if isinstance(field, DaskField) or (isinstance(field, ArrayField) and (
+                field.dtype == np.float64 or out is None)):
+            return _as_float64(field.read(h))
+        shape = (self.n_trajectories, self.n_features)
+        if out is None or out.shape != shape or out.dtype != np.float64:
+            out = np.empty(shape)
+        if isinstance(field, ArrayField):
+            np.copyto(out, field.read(h))
+            return out
+        raw = None
+        if isinstance(field, FileField) and field.dtype != np.float64:
+            raw = np.empty((min(self.chunk, shape[0]), shape[1]), dtype=field.dtype)
+        for s in range(0, shape[0], self.chunk):
+            e = min(shape[0], s + self.chunk)
+            if isinstance(field, FileField):
+                if raw is None:
+                    field.read(h, s, e, out=out[s:e])
+                else:
+                    np.copyto(out[s:e], field.read(h, s, e, out=raw[: e - s]))
+            else:
+                out[s:e] = field.read(h, s, e)
         return out
 
     def rewards_step(self, h: int) -> np.ndarray:
