@@ -331,3 +331,22 @@ def test_dask_arrays_on_a_local_cluster_fit_as_in_memory(cluster_client):
         assert_same_fit(ESTIMATORS[name]().fit(ds), ESTIMATORS[name]().fit(mem))
     with pytest.raises(TypeError, match="dask.array"):
         OfflineDataset.from_dask(phi, rewards, nphi)
+
+
+def test_actions_with_known_values_need_no_features(tmp_path):
+    phi, rewards, nphi, nv = make_arrays(200, seed=5)
+    holes = nphi.copy()
+    holes[~np.isnan(nv)] = np.nan  # no features where the value is known
+    ref = OfflineDataset.from_features(phi, rewards, nphi, nv)
+    ds = OfflineDataset.from_features(phi, rewards, holes, nv)
+    assert ds.nonnegative_next_features
+    with DatasetWriter(tmp_path / "k", horizon=H, n_features=D, n_actions=A,
+                       dtype="float64") as w:
+        w.append(phi, rewards, holes, nv)
+    for name in ("TV", "chi2", "PEVI"):
+        assert_same_fit(ESTIMATORS[name]().fit(ds), ESTIMATORS[name]().fit(ref))
+        assert_same_fit(ESTIMATORS[name]().fit(OfflineDataset.open(tmp_path / "k")),
+                        ESTIMATORS[name]().fit(ref))
+    holes[0, 0, 1] = np.nan  # a learned action still needs its features
+    with pytest.raises(ValueError, match="where no value is known"):
+        OfflineDataset.from_features(phi, rewards, holes, nv)

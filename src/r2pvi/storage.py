@@ -594,12 +594,18 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
     nonneg_phi = bool((phi >= 0).all())
     if last_step or next_phi is None:
         return flags + (False, False, nonneg_phi, True)
-    if not np.isfinite(next_phi).all():
-        raise ValueError(
-            "next_phi contains NaN or infinite entries in steps h < H-1 (only the last "
-            "step's row may be left undefined)"
-        )
-    return flags + simplex_flags(next_phi) + (nonneg_phi, bool((next_phi >= 0).all()))
+    finite = np.isfinite(next_phi).all(axis=-1)
+    if not finite.all():
+        # An action whose value is known needs no features: its row may be left NaN.
+        known = np.zeros(finite.shape, bool) if next_values is None else ~np.isnan(next_values)
+        if not (finite | known).all():
+            raise ValueError(
+                "next_phi contains NaN or infinite entries in steps h < H-1 where no value is "
+                "known (only the last step's row and actions with a known next_values entry "
+                "may be left undefined)"
+            )
+    # NaN rows (known values) count as neither negative nor off the simplex.
+    return flags + simplex_flags(next_phi) + (nonneg_phi, not bool((next_phi < 0).any()))
 
 
 def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chunk=CHUNK,
