@@ -481,6 +481,54 @@ class OfflineDataset:
             next_states=next_states,
         )
 
+    @classmethod
+    def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | None = None,
+                      *, reward_offset=None, check_simplex: bool = True) -> OfflineDataset:
+        """Build a dataset from episodes of any length (Gymnasium rollouts, Minari datasets).
+
+        Parameters
+        ----------
+        episodes : minari.MinariDataset or iterable
+            Episodes with Minari's ``EpisodeData`` fields (objects or dicts):
+            ``observations (T+1, ...)``, ``actions (T,)``, ``rewards (T,)``,
+            ``terminations (T,)``, ``truncations (T,)``.
+        feature_map : callable or fitted transformer
+            ``feature_map(observations, actions) -> (n, d)`` (e.g.
+            ``r2pvi.features.cross_actions(NormalizedRBF().fit(obs), n_actions)``), or a
+            fitted observation transformer, crossed with the actions block-wise.
+        n_actions : int
+            Number of discrete actions A.
+        horizon : int, optional
+            H; None takes the longest episode. Longer episodes are cut at H.
+        reward_offset : None, "auto" or float
+            Negative rewards are refused unless shifted by ``reward_offset`` (an exact
+            shift: the same greedy policy; see :mod:`r2pvi.episodes`).
+        check_simplex : bool, default True
+
+        A terminated episode continues in an absorbing state of known value 0; a truncated
+        one ends without a terminal value; steps after an episode's end carry zero features
+        (no data). Details: :mod:`r2pvi.episodes`.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> from r2pvi.features import StateAggregation, cross_actions
+        >>> ep = {"observations": [[0.0], [0.4], [0.9]], "actions": [1, 0],
+        ...       "rewards": [1.0, 1.0], "terminations": [False, True],
+        ...       "truncations": [False, False]}
+        >>> fmap = cross_actions(StateAggregation(n_bins=2).fit([[0.0], [1.0]]), 2)
+        >>> ds = OfflineDataset.from_episodes([ep], fmap, n_actions=2, horizon=3)
+        >>> ds.phi[0].tolist()                     # two steps, then no data
+        [[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]
+        >>> ds.next_values[0, 1].tolist()          # terminated: absorbing, value 0
+        [0.0, 0.0]
+        """
+        from .episodes import dataset_from_episodes
+
+        return dataset_from_episodes(episodes, feature_map, n_actions, horizon,
+                                     reward_offset=reward_offset, check_simplex=check_simplex)
+
     # ------------------------------------------------------------------ views
     @property
     def n_trajectories(self) -> int:

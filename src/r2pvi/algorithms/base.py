@@ -210,6 +210,18 @@ class LinearEstimator:
         """Greedy values ``V_h = max_a Q_h`` at step ``h``, ``(n,)``."""
         return np.max(self.q_values(phi_all, h, known_values), axis=1)
 
+    def as_policy(self, feature_map, *, beyond_horizon: str = "receding"):
+        """This fitted estimator as a policy ``(h, observations) -> actions`` for Gymnasium.
+
+        ``feature_map`` is the one the dataset was built with (see
+        :class:`~r2pvi.algorithms._policy.GreedyPolicy`); the policy works with
+        :func:`r2pvi.envs.collect_episodes` and :func:`r2pvi.evaluation.evaluate_policy`.
+        """
+        from ._policy import GreedyPolicy
+
+        self._check_fitted()
+        return GreedyPolicy(self, feature_map, beyond_horizon=beyond_horizon)
+
     # ------------------------------------------------------------------ I/O
     def _params_to_json(self) -> tuple[dict, dict]:
         meta, arrays = {}, {}
