@@ -350,3 +350,14 @@ def test_actions_with_known_values_need_no_features(tmp_path):
     holes[0, 0, 1] = np.nan  # a learned action still needs its features
     with pytest.raises(ValueError, match="where no value is known"):
         OfflineDataset.from_features(phi, rewards, holes, nv)
+
+
+def test_a_dropped_writer_leaves_nothing_behind(tmp_path):
+    import gc
+
+    w = DatasetWriter(tmp_path / "gone", horizon=H, n_features=D, n_actions=A)
+    w.append(*make_arrays(5)[:3])
+    assert len(list(tmp_path.iterdir())) == 1  # the temporary directory
+    del w
+    gc.collect()
+    assert list(tmp_path.iterdir()) == []

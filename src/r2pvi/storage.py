@@ -39,6 +39,7 @@ import os
 import shutil
 import uuid
 import warnings
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -884,6 +885,8 @@ class DatasetWriter:
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists; pass overwrite=True or choose a new path")
         self._tmp: Path | None = _temp_dir(self.path)
+        # A writer dropped without close() leaves no temporary directory behind.
+        self._cleanup = weakref.finalize(self, shutil.rmtree, str(self._tmp), True)
         self._shards: list[tuple[int, bool]] = []  # (K of the chunk, has next_values)
         self._flags = [False, False, False, False, True, True]
         self.n_trajectories = 0
