@@ -413,22 +413,29 @@ def _reader_pool():
 
 
 def _prefetched(field: FileField, h, n, chunk, shape):
-    """``(start, stop, rows)`` over step ``h``, reading the next chunk (``pread`` releases the
-    GIL) while the caller computes on this one; two buffers, reused."""
-    bufs = [np.empty(shape, dtype=field.dtype), np.empty(shape, dtype=field.dtype)]
+    """``(start, stop, rows)`` over step ``h`` with ``rows`` in float64: a reader thread reads
+    (``pread``) and casts the next chunk (both release the GIL) while the caller computes on
+    this one. Two pairs of buffers, reused; ``rows`` is valid until the next iteration."""
+    f64 = [np.empty(shape), np.empty(shape)]
+    raw = f64 if field.dtype == np.float64 else [np.empty(shape, field.dtype) for _ in f64]
     starts = list(range(0, n, chunk))
     pool = _reader_pool()
 
     def job(i):
         s = starts[i]
         e = min(n, s + chunk)
-        return field.read(h, s, e, out=bufs[i % 2][: e - s])
+        rows = field.read(h, s, e, out=raw[i % 2][: e - s])
+        if rows.dtype == np.float64:
+            return rows
+        out = f64[i % 2][: e - s]
+        np.copyto(out, rows)
+        return out
 
     pending = pool.submit(job, 0)
     for i, s in enumerate(starts):
         rows = pending.result()
         if i + 1 < len(starts):
-            pending = pool.submit(job, i + 1)
+            pending = pool.submit(job, i + 1)  # writes the other pair of buffers
         yield s, min(n, s + chunk), rows
 
 
@@ -492,18 +499,14 @@ class StepSource:
         if isinstance(field, ArrayField):
             np.copyto(out, field.read(h))
             return out
-        raw = None
-        if isinstance(field, FileField) and field.dtype != np.float64:
-            raw = np.empty((min(self.chunk, shape[0]), shape[1]), dtype=field.dtype)
+        if isinstance(field, FileField):
+            chunk_shape = (min(self.chunk, shape[0]), shape[1])
+            for s, e, rows in _prefetched(field, h, shape[0], self.chunk, chunk_shape):
+                out[s:e] = rows
+            return out
         for s in range(0, shape[0], self.chunk):
             e = min(shape[0], s + self.chunk)
-            if isinstance(field, FileField):
-                if raw is None:
-                    field.read(h, s, e, out=out[s:e])
-                else:
-                    np.copyto(out[s:e], field.read(h, s, e, out=raw[: e - s]))
-            else:
-                out[s:e] = field.read(h, s, e)
+            out[s:e] = field.read(h, s, e)
         return out
 
     def rewards_step(self, h: int) -> np.ndarray:
