@@ -5,6 +5,7 @@ reports the process's peak resident memory (``ru_maxrss``):
 
     python benchmarks/bench_storage.py disk --K 1000000          # features stored, float32
     python benchmarks/bench_storage.py scaling --Ks 1e5 1e6 1e7  # observations + feature map
+    python benchmarks/bench_storage.py float32                   # float32 vs float64 storage
 
 ``disk``: K trajectories (d = 30, H = 20, A = 2, synthetic simplex features, float32) written
 with ``r2pvi.DatasetWriter``; then the time to read the whole dataset once from the page
@@ -206,6 +207,22 @@ def scaling(args):
               f"{1e6 * r['seconds'] / K:10.2f} {r['peak_rss_mib']:13.0f}", flush=True)
 
 
+def float32(args):
+    """float32 storage against float64 on bench_fit.py's data (K = 1e4, d = 30, H = 20)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    import bench_fit
+
+    from r2pvi import OfflineDataset
+
+    ds, th = bench_fit.make_dataset(args.K, H, D)
+    f32 = OfflineDataset.from_features(ds.phi, ds.rewards, ds.next_phi, dtype="float32")
+    print(f"K = {args.K}, d = {D}, H = {H}: weights with float32 storage vs float64")
+    for name in ("R2PVI-TV", "R2PVI-KL", "R2PVI-chi2", "DRPVI"):
+        a, b = estimator(name).fit(ds), estimator(name).fit(f32)
+        print(f"{name:<11} max |w32 - w64| = {np.abs(a.weights_ - b.weights_).max():.2e}"
+              f"  (max |w| = {np.abs(a.weights_).max():.2f})")
+
+
 def main(argv=None):
     if argv is None and len(sys.argv) > 2 and sys.argv[1] == "--child":
         print(json.dumps(child(json.loads(sys.argv[2]))))
@@ -223,10 +240,13 @@ def main(argv=None):
         p.add_argument("--keep", action="store_true", help="reuse data already written")
         p.add_argument("--blas-threads", type=int, default=1,
                        help="BLAS threads in the fits (1: stable timings on a shared machine)")
+    f = sub.add_parser("float32")
+    f.add_argument("--K", type=int, default=10_000)
+    f.add_argument("--blas-threads", type=int, default=1)
     args = ap.parse_args(argv)
     global BLAS_THREADS
     BLAS_THREADS = args.blas_threads
-    {"disk": disk, "scaling": scaling}[args.cmd](args)
+    {"disk": disk, "scaling": scaling, "float32": float32}[args.cmd](args)
 
 
 if __name__ == "__main__":
