@@ -169,6 +169,8 @@ def test_writer_validates_each_chunk_and_is_atomic(tmp_path):
         DatasetWriter(tmp_path / "e", horizon=H, n_features=D, n_actions=A).close()
     with pytest.raises(ValueError, match="dtype"):
         DatasetWriter(tmp_path / "f", horizon=H, n_features=D, n_actions=A, dtype="int8")
+    with pytest.raises(ValueError, match="dtype"):
+        DatasetWriter(tmp_path / "g", horizon=H, n_features=D, n_actions=A, dtype="bogus")
 
 
 def test_writer_warns_once_off_the_simplex(tmp_path):

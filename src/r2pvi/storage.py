@@ -66,7 +66,17 @@ FORMAT_VERSION = 2
 KIND = "r2pvi.OfflineDataset"
 MANIFEST = "manifest.json"
 CHUNK = 1 << 13  # trajectories per chunk when streaming a step (buffers of a few MB)
-_DTYPES = {"float32": np.float32, "float64": np.float64}
+
+
+def _float_dtype(dtype) -> np.dtype:
+    """float32 or float64, else a ValueError naming the choices."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    return dt
 
 
 class SimplexFeatureWarning(UserWarning):
@@ -880,9 +890,7 @@ class DatasetWriter:
         self.horizon = check_scalar(horizon, "horizon", low=1, integer=True)
         self.n_features = check_scalar(n_features, "n_features", low=1, integer=True)
         self.n_actions = check_scalar(n_actions, "n_actions", low=1, integer=True)
-        if dtype not in _DTYPES and np.dtype(dtype) not in (np.float32, np.float64):
-            raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
-        self.dtype = np.dtype(dtype)
+        self.dtype = _float_dtype(dtype)
         self.check_simplex = check_simplex
         self.overwrite = overwrite
         if self.path.exists() and not overwrite:
