@@ -135,8 +135,7 @@ class OfflineDataset:
         >>> np.shares_memory(ds.phi, phi_sm)                   # no copy was made
         True
         """
-        if dtype is not None and np.dtype(dtype) not in (np.float32, np.float64):
-            raise ValueError(f"dtype must be None, 'float32' or 'float64', got {dtype!r}")
+        dtype = None if dtype is None else _st._float_dtype(dtype)
         p = _st.step_major(phi, "phi", 3, dtype)
         H, K, d = p.shape
         if K == 0:
@@ -212,8 +211,7 @@ class OfflineDataset:
         """
         from ._validation import as_float_array
 
-        if dtype is not None and np.dtype(dtype) not in (np.float32, np.float64):
-            raise ValueError(f"dtype must be None, 'float32' or 'float64', got {dtype!r}")
+        dtype = None if dtype is None else _st._float_dtype(dtype)
         p = _st.step_major(phi, "phi", 3, dtype)
         H, K, d = p.shape
         if K == 0 or H == 0 or d == 0:
@@ -694,8 +692,7 @@ class OfflineDataset:
         p = Path(os.fspath(path))
         if p.suffix == ".npz":
             return self._save_npz(p)
-        if dtype is not None and np.dtype(dtype) not in (np.float32, np.float64):
-            raise ValueError(f"dtype must be None, 'float32' or 'float64', got {dtype!r}")
+        dtype = None if dtype is None else _st._float_dtype(dtype)
         return _st.write_directory(self._source, p, dtype=dtype, overwrite=overwrite)
 
     def _save_npz(self, path):
