@@ -5,6 +5,8 @@ import io
 import numpy as np
 import pytest
 
+import r2pvi
+
 gym = pytest.importorskip("gymnasium")
 
 from r2pvi import PEVI, R2PVI, OfflineDataset  # noqa: E402
@@ -48,8 +50,10 @@ def test_vector_rollouts_equal_single_env_rollouts_for_the_same_seeds():
         _same(single, collect_episodes(gym.make("CartPole-v1"), policy, 7, seed=3,
                                        max_steps=60, **kwargs))
     _same(single, collect_episodes("CartPole-v1", policy, 7, seed=3, max_steps=60, n_envs=2))
-    venv = gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1")] * 4)
-    _same(single, collect_episodes(venv, policy, 7, seed=3, max_steps=60))
+    for mode in ("NextStep", "SameStep", "Disabled"):  # a vector env of any autoreset mode
+        venv = gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1")] * 4,
+                                        autoreset_mode=mode)
+        _same(single, collect_episodes(venv, policy, 7, seed=3, max_steps=60))
     returns = episode_returns(gym.make("CartPole-v1"), policy, 7, seed=3, max_steps=60,
                               n_envs=4)
     np.testing.assert_array_equal(returns, [e.total_reward for e in single])
@@ -98,7 +102,7 @@ def test_learned_policy_acts_batched_and_beyond_its_horizon():
     mean, se = evaluate_policy(gym.make("CartPole-v1"), policy, 6, seed=0, max_steps=50,
                                n_envs=3)
     assert 0 < mean <= 50 and se >= 0
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(r2pvi.NotFittedError, match="not fitted"):
         PEVI().as_policy(fmap)
 
 

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from . import storage as _st
-from ._io import load_npz, save_npz
+from ._io import file_error, load_npz, save_npz
+from ._validation import as_float_array, as_index_array
 from .storage import SimplexFeatureWarning
 
 __all__ = ["OfflineDataset", "SimplexFeatureWarning", "check_simplex_features"]
@@ -166,7 +167,7 @@ class OfflineDataset:
                 )
         nonneg_phi, nonneg_next, any_known = _st.validate_source(
             p, r, n, nv, check_simplex, stacklevel=3)
-        extras = _check_extras(K, H, states=states, actions=actions, next_states=next_states)
+        extras = _check_extras(K, H, A, states=states, actions=actions, next_states=next_states)
         known = _st.ArrayField(nv) if nv is not None and any_known else None
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.StoredNext(_st.ArrayField(n), known, nonneg_next),
@@ -209,7 +210,6 @@ class OfflineDataset:
         >>> ds.next_phi[0, 0].tolist()
         [[0.0, 1.0], [0.0, 1.0]]
         """
-        from ._validation import as_float_array
 
         dtype = None if dtype is None else _st._float_dtype(dtype)
         p = _st.step_major(phi, "phi", 3, dtype)
@@ -246,7 +246,7 @@ class OfflineDataset:
         if check_simplex:
             used = tab if tab.ndim == 3 else tab[: max(H - 1, 1)]
             check_simplex_features(used, "table")
-        extras = _check_extras(K, H, states=states, actions=actions, next_states=idx)
+        extras = _check_extras(K, H, A, states=states, actions=actions, next_states=idx)
         ix = np.ascontiguousarray(idx.T)
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi)
@@ -433,13 +433,7 @@ class OfflineDataset:
         actions_arr = np.asarray(actions)
         if actions_arr.ndim != 2:
             raise ValueError(f"actions must have shape (K, H), got {actions_arr.shape}")
-        if not np.issubdtype(actions_arr.dtype, np.integer):
-            if np.issubdtype(actions_arr.dtype, np.floating) and np.all(
-                actions_arr == np.round(actions_arr)
-            ):
-                actions_arr = actions_arr.astype(np.int64)
-            else:
-                raise TypeError("actions must be integer action indices")
+        actions_arr = as_index_array(actions_arr, "actions", int(n_actions), ndim=2)
         K, H = actions_arr.shape
         if states.shape[:2] != (K, H) or next_states.shape[:2] != (K, H):
             raise ValueError(
@@ -659,10 +653,14 @@ class OfflineDataset:
         idx = np.asarray(indices)
         if idx.dtype == bool:
             if idx.shape != (self.n_trajectories,):
-                raise ValueError("a boolean mask must have one entry per trajectory")
+                raise ValueError(
+                    f"a boolean mask must have one entry per trajectory (K = "
+                    f"{self.n_trajectories}), got shape {idx.shape}"
+                )
             idx = np.flatnonzero(idx)
         if idx.ndim != 1 or idx.size == 0:
             raise ValueError("indices must select at least one trajectory")
+        idx = as_index_array(idx, "indices", self.n_trajectories, ndim=1)
         return OfflineDataset(_source=self._source.take(idx))
 
     def __repr__(self) -> str:
@@ -726,18 +724,29 @@ class OfflineDataset:
             src = _st.open_directory(p)
             return cls(_source=src.take(np.arange(src.n_trajectories)))
         arrays, _ = load_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION)
+        known = {"phi", "rewards", "next_phi", "next_values"}
+        known |= {"extra_" + k for k in ("states", "actions", "next_states")}
+        for name in sorted(known - set(arrays)):
+            if not name.startswith("extra_"):
+                raise file_error(path, name, "is missing")
+        unknown = sorted(set(arrays) - known)
+        if unknown:
+            raise file_error(path, unknown[0], "is not a field of an OfflineDataset file")
         extras = {k[len("extra_") :]: v for k, v in arrays.items() if k.startswith("extra_")}
-        return cls.from_features(
-            arrays["phi"],
-            arrays["rewards"],
-            arrays["next_phi"],
-            arrays["next_values"],
-            check_simplex=False,
-            **extras,
-        )
+        try:  # the loaded arrays go through the same checks as from_features
+            return cls.from_features(
+                arrays["phi"],
+                arrays["rewards"],
+                arrays["next_phi"],
+                arrays["next_values"],
+                check_simplex=False,
+                **extras,
+            )
+        except (TypeError, ValueError) as exc:
+            raise file_error(path, None, f"holds invalid data: {exc}") from None
 
 
-def _check_extras(K, H, **given) -> dict:
+def _check_extras(K, H, A, **given) -> dict:
     extras = {}
     for name, value in given.items():
         if value is None:
@@ -745,7 +754,10 @@ def _check_extras(K, H, **given) -> dict:
         arr = np.asarray(value)
         if arr.shape[:2] != (K, H):
             raise ValueError(f"{name} must start with (K, H) = {(K, H)}, got {arr.shape}")
-        extras[name] = arr.astype(np.int64) if name == "actions" else arr
+        if name == "actions":
+            arr = as_index_array(arr, "actions", A, ndim=2)
+        # A private, read-only copy: the caller's array is neither shared nor mutable here.
+        extras[name] = _readonly(np.array(arr, copy=True))
     return extras
 
 

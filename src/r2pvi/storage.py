@@ -527,7 +527,10 @@ class StepSource:
         return self.next.values(h, qmax, self.n_trajectories, self.chunk)
 
     def take(self, idx) -> StepSource:
-        extras = {k: v[idx] for k, v in self.extras.items()}
+        extras = {}
+        for k, v in self.extras.items():
+            extras[k] = np.asarray(v[idx])
+            extras[k].flags.writeable = False
         phi = self.phi
         phi = MappedField(ArrayField(phi.observations.take(idx)),
                           ArrayField(phi.actions.take(idx)), phi.feature_map,
