@@ -140,7 +140,7 @@ def test_writer_validates_each_chunk_and_is_atomic(tmp_path):
     w.append(phi[:10], rewards[:10], nphi[:10])
     bad = phi[10:20].copy()
     bad[3, 1, 2] = np.nan
-    with pytest.raises(ValueError, match="phi contains NaN"):
+    with pytest.raises(ValueError, match="phi contains 1 NaN"):
         w.append(bad, rewards[10:20], nphi[10:20])
     with pytest.raises(ValueError, match=r"next_phi must have shape \(k, H, A, d\)"):
         w.append(phi[10:20], rewards[10:20], nphi[10:20, :, :2])

@@ -600,13 +600,13 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
 
     ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used.
     """
-    if not np.isfinite(phi).all():
-        raise ValueError("phi contains NaN or infinite entries; clean the data first")
-    if not np.isfinite(rewards).all():
-        raise ValueError("rewards contains NaN or infinite entries; clean the data first")
+    for name, x in (("phi", phi), ("rewards", rewards)):
+        if not np.isfinite(x).all():
+            raise ValueError(f"{name} contains {int(np.count_nonzero(~np.isfinite(x)))} NaN or "
+                             "infinite entries; clean the data first")
     if next_values is not None and not last_step and np.isinf(next_values).any():
-        raise ValueError("next_values contains infinite entries; use NaN where the value must "
-                         "be learned")
+        raise ValueError(f"next_values contains {int(np.count_nonzero(np.isinf(next_values)))} "
+                         "infinite entries; use NaN where the value must be learned")
     flags = simplex_flags(phi)
     nonneg_phi = bool((phi >= 0).all())
     if last_step or next_phi is None:
@@ -639,9 +639,12 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
         for s in range(0, K, chunk):
             e = min(K, s + chunk)
             nv = None if next_values is None else next_values[h, s:e]
-            flags = check_features_chunk(
-                phi[h, s:e], rewards[h, s:e], None if next_phi is None else next_phi[h, s:e],
-                nv, last)
+            try:
+                flags = check_features_chunk(
+                    phi[h, s:e], rewards[h, s:e],
+                    None if next_phi is None else next_phi[h, s:e], nv, last)
+            except ValueError as exc:
+                raise _counted(exc, phi, rewards, next_values, chunk) from None
             for i in range(4):
                 acc[i] = acc[i] or flags[i]
             acc[4] = acc[4] and flags[4]
@@ -653,6 +656,22 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
         if next_phi is not None:
             warn_simplex("next_phi", acc[2], acc[3], stacklevel)
     return acc[4], acc[5], any_known
+
+
+def _counted(exc: ValueError, phi, rewards, next_values, chunk) -> ValueError:
+    """The error of one chunk, with the count of bad entries over the whole field."""
+    msg = str(exc)
+    name = msg.split(" ", 1)[0]
+    field = {"phi": phi, "rewards": rewards, "next_values": next_values}.get(name)
+    if field is None or " contains " not in msg:
+        return exc
+    bad = np.isinf if name == "next_values" else (lambda x: ~np.isfinite(x))
+    H, K = field.shape[:2]
+    n = sum(int(np.count_nonzero(bad(field[h, s:s + chunk])))
+            for h in range(H - (name == "next_values")) for s in range(0, K, chunk))
+    rest = msg.split(" entries", 1)[1] if " entries" in msg else ""
+    kind = "infinite" if name == "next_values" else "NaN or infinite"
+    return ValueError(f"{name} contains {n} {kind} entries{rest}")
 
 
 # --------------------------------------------------------------------------- on disk
