@@ -45,8 +45,9 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
     Numerical guarantees (any data, also signed ridge weights): each ``w_h,i`` is finite and
     lies in ``[min(V_min, m), m]`` with ``m`` the plain ridge estimate of ``E_i V_{h+1}``
     clipped to ``[0, (H - h - 1) r_max]`` (the ball contains ``mu0``, so the robust value
-    never exceeds it); it is non-increasing in ``rho``, tends to ``m`` as ``rho -> 0+``
-    (``rho = 0`` gives ``m``), and any radius past saturation (``rho = 1e16``) gives
+    never exceeds it); it is non-increasing in ``rho`` and tends to ``m`` as ``rho -> 0+``
+    (``rho = 0`` gives the plain estimate, :class:`~r2pvi.PEVI`'s, which is ``m`` whenever it
+    lies in the value range), and any radius past saturation (``rho = 1e16``) gives
     ``V_min`` exactly. VA-DRPVI has the same guarantees on its weighted operator.
 
     Parameters

@@ -28,7 +28,7 @@ def auto_b_min(v: np.ndarray, n_samples: int) -> float | None:
     Examples
     --------
     >>> round(auto_b_min(np.array([0.0, 0.5, 2.0]), 1000), 6)
-    0.289530
+    0.28953
     """
     spread = float(np.max(v) - np.min(v))
     if not spread > 0:
@@ -86,8 +86,9 @@ class DRVIL(LinearEstimator):
     lies in ``[0, m]``, ``m`` the plain ridge estimate of ``E_i V_{h+1}`` clipped to
     ``[0, (H - h - 1) r_max]`` (the ball contains ``mu0``, so the robust value never exceeds
     it; the estimate of ``E_i[e^{-V/b}]`` is floored at ``e^{-m/b}``, Jensen's bound, instead
-    of Ma et al.'s ``e^{-H/b}``); it is non-increasing in ``rho``, tends to ``m`` as
-    ``rho -> 0+`` (``rho = 0`` gives ``m``), and a radius so large that no ``b >= b_min``
+    of Ma et al.'s ``e^{-H/b}``); it is non-increasing in ``rho`` and tends to ``m`` as
+    ``rho -> 0+`` (``rho = 0`` gives the plain estimate, :class:`~r2pvi.PEVI`'s, which is
+    ``m`` whenever it lies in the value range), and a radius so large that no ``b >= b_min``
     gives a value above 0 (``rho = 1e10``) gives 0, the least value.
 
     Parameters

@@ -66,10 +66,10 @@ def tv_constrained(
     Guarantees (also for ridge operators, whose weights may be negative): the ball contains
     ``mu0_i``, so the result never exceeds the plain estimate ``E_i(v)`` (clipped to
     ``v_range``), and it is at least ``V_min``. With ``m_i = clip(E_i(v), lo, hi)``
-    (``v_range = (lo, hi)``, unbounded when None), the result is
-    ``min(max(dual_i, max(V_min, lo)), m_i)``: ``rho_i = 0`` gives ``m_i`` (exactly
-    ``E_i(v)`` when ``v_range`` is None) and the result is continuous as ``rho_i -> 0+``,
-    non-increasing in ``rho_i``. For a distribution ``rho_i >= 1`` (the ball holds every
+    (``v_range = (lo, hi)``, unbounded when None), the result for ``rho_i > 0`` is
+    ``min(max(dual_i, max(V_min, lo)), m_i)``: non-increasing in ``rho_i`` and tending to
+    ``m_i`` as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``E_i(v)`` (the non-robust
+    estimate, equal to the limit whenever it lies in ``v_range``). For a distribution ``rho_i >= 1`` (the ball holds every
     distribution) gives ``V_min`` exactly, as does any radius large enough for a ridge row.
 
     Parameters
@@ -113,11 +113,11 @@ def tv_constrained(
     lowest = float(np.min(v))
     floor = lowest if v_min is None else min(float(v_min), lowest)
     y = v - floor  # >= 0, and exactly 0 at the lowest point when floor == min(v)
-    both = E(np.stack([v, np.ones_like(v)], axis=1))
-    plain, mass = both[:, 0], both[:, 1]
-    cap = plain if v_range is None else np.clip(plain, lo, hi)
+    plain = E(v)
     if not np.any(rho > 0):
-        return cap.copy() if cap is plain else cap
+        return plain
+    cap = np.clip(plain, lo, hi)
+    mass = E(np.ones_like(v))
     if method == "auto":
         method = "blockwise" if v.size >= 512 else "dense"
     with np.errstate(over="ignore", invalid="ignore"):  # rho alpha may overflow to inf
@@ -132,7 +132,7 @@ def tv_constrained(
         best = np.where(rho >= 1.0, floor, best)
     lower = max(floor, lo)
     out = np.minimum(np.maximum(best, lower), cap)
-    return np.where(rho > 0, out, cap)
+    return np.where(rho > 0, out, plain)  # rho_i = 0: exactly the plain expectation
 
 
 def _value_range(v_range) -> tuple[float, float]:
@@ -222,8 +222,9 @@ def kl_constrained(
     Guarantees: with ``v_range = (lo, hi)`` (unbounded when None) and ``m_i = clip(E_i(v),
     lo, hi)``, the result lies in ``[min(lower_i, m_i), m_i]``, ``lower_i = lo`` for a
     ridge operator and the smallest value on the factor's support (at least ``lo``) for a
-    distribution; ``rho_i = 0`` gives ``m_i`` (exactly ``E_i(v)`` when ``v_range`` is None)
-    and the result is continuous as ``rho_i -> 0+`` and non-increasing in ``rho_i``. For a
+    distribution, for ``rho_i > 0``; it is non-increasing in ``rho_i`` and tends to ``m_i``
+    as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``E_i(v)`` (the non-robust estimate,
+    equal to the limit whenever it lies in ``v_range``). For a
     distribution, a radius ``rho_i >= log(1 / mu0_i(S_min))`` (``S_min``: where V is
     smallest on the support) makes the ball hold the point mass there: the result is that
     minimum, exactly.
@@ -273,15 +274,15 @@ def kl_constrained(
         v_range = (-np.inf, v_max)
     lo, hi = _value_range(v_range)
     plain = E(v)
-    cap = plain.copy() if v_range is None else np.clip(plain, lo, hi)
     dims = np.flatnonzero(rho > 0)
     if dims.size == 0:
-        return cap
+        return plain
+    cap = np.clip(plain, lo, hi)
     if b_min is not None and not (np.isfinite(b_min) and b_min > 0):
         raise ValueError(f"b_min must be a positive number or None, got {b_min!r}")
     prob = _KLProblem(E, v, rho, dims, cap, lo, centered)
     best = prob.solve(b_min, xtol, max_iter)
-    out = cap.copy()
+    out = plain.copy()  # rho_i = 0: exactly the plain expectation
     out[dims] = np.minimum(np.maximum(best, prob.lower), cap[dims])
     if prob.saturated is not None:  # distributions: the point mass at the minimum is in the ball
         out[dims] = np.where(prob.saturated, np.minimum(prob.lower, cap[dims]), out[dims])
