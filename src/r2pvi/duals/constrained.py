@@ -69,8 +69,9 @@ def tv_constrained(
     (``v_range = (lo, hi)``, unbounded when None), the result for ``rho_i > 0`` is
     ``min(max(dual_i, max(V_min, lo)), m_i)``: non-increasing in ``rho_i`` and tending to
     ``m_i`` as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``E_i(v)`` (the non-robust
-    estimate, equal to the limit whenever it lies in ``v_range``). For a distribution ``rho_i >= 1`` (the ball holds every
-    distribution) gives ``V_min`` exactly, as does any radius large enough for a ridge row.
+    estimate, equal to the limit whenever it lies in ``v_range``). A radius ``rho_i >= 1``
+    makes the ball hold every distribution, whatever ``mu0_i``: the result is then
+    ``min(V_min, m_i)``, exactly (a ridge row's dual would give ``V_min E_i(1)``).
 
     Parameters
     ----------
@@ -128,8 +129,9 @@ def tv_constrained(
     # alpha = V_min: E_i[y]_0 - 0 = 0 (a breakpoint already when floor == min(v))
     np.maximum(best, 0.0, out=best)
     best += floor * mass
-    if E.nonnegative:  # distributions: a radius >= 1 allows every distribution
-        best = np.where(rho >= 1.0, floor, best)
+    # A radius >= 1 allows every distribution, whatever mu0: the least value, exactly (the
+    # ridge dual there is V_min E_i(1), biased by the row sum).
+    best = np.where(rho >= 1.0, floor, best)
     lower = max(floor, lo)
     out = np.minimum(np.maximum(best, lower), cap)
     return np.where(rho > 0, out, plain)  # rho_i = 0: exactly the plain expectation
@@ -346,7 +348,7 @@ class _KLProblem:
         hi = np.where(f1 > 0, tgrid[np.minimum(k + 1, n_grid - 1)], t)
         ftol = _FTOL * self.scale
         for _ in range(max_iter):
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 newton = t - f1 / f2
                 gain = 0.5 * f1 * f1 / np.abs(f2)
             go = (hi - lo > xtol * (1.0 + np.abs(t))) & ~((f2 < 0) & (gain <= ftol))
