@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from r2pvi.algorithms import DRPVI, DRVIL, PEVI, KLBallRule, TVBallRule
+from r2pvi.algorithms import DRVIL, PEVI, KLBallRule, TVBallRule
 from r2pvi.duals import (
     FactorExpectation,
     RidgeExpectation,
@@ -258,6 +258,12 @@ def test_ridge_factor_values_are_in_range_below_plain_and_monotone(case, log_rho
             assert np.all(np.isfinite(w)), name
             assert np.all(w >= 0.0) and np.all(w <= scale), name
             assert np.all(w <= cap), name  # exactly: the ball contains mu0
+        if name == "DRVI-L b_min=None":
+            # Not guaranteed: below b_min the estimated objective has narrow spikes (where the
+            # ridge estimate of E[e^{-V/b}] crosses its floor) that the grid may miss at one
+            # radius and hit at another; hypothesis found one (2% of the scale). The default
+            # b_min excludes that region.
+            continue
         assert np.all(np.diff(ws, axis=0) <= tol), name  # non-increasing in rho
 
 

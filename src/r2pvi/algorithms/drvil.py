@@ -65,7 +65,8 @@ def check_b_min(b_min):
     b = float(b_min)
     if not (np.isfinite(b) and b > 0):
         raise ValueError(
-            f"b_min must be a finite number > 0 (or 'auto', or None to search b -> 0), got {b_min!r}"
+            f"b_min must be a finite number > 0 (or 'auto', or None to search b -> 0), "
+            f"got {b_min!r}"
         )
     return b
 
