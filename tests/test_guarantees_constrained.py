@@ -13,7 +13,7 @@ fix (old values in the comments).
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from r2pvi.algorithms import DRVIL, PEVI, KLBallRule, TVBallRule
@@ -324,6 +324,7 @@ def test_exact_duals_lie_between_min_v_and_the_mean_and_decrease_in_rho(case, lo
 
 @settings(max_examples=150, deadline=None)
 @given(exact_cases)
+@example((5797, 4, 2, True, 0.001))  # a grid value 1 ulp above the minimum, without the branch
 def test_saturated_exact_balls_give_the_minimum_exactly(case):
     E, mu, v = exact_case(*case)
     support_min = np.where(mu > 0, v, np.inf).min(axis=1)

@@ -289,6 +289,8 @@ def kl_constrained(
     # The lower end: every expectation of V is at least the least value (for a distribution,
     # the minimum on its support, which a saturated ball attains exactly).
     out[dims] = np.minimum(np.maximum(best, prob.lower), cap[dims])
+    if prob.saturated is not None:  # the point mass at the minimum is in the ball: exactly it
+        out[dims] = np.where(prob.saturated, np.minimum(prob.lower, cap[dims]), out[dims])
     return out
 
 
@@ -323,8 +325,15 @@ class _KLProblem:
         self.cap = cap[dims] / self.norm
         if E.nonnegative:
             self.lower = np.maximum(self.shift, lo)
+            # rho_i >= log(1 / mu0_i(argmin)): saturated (rounding could put a grid value an
+            # ulp above the minimum otherwise)
+            at_min = np.where(rows > 0, v, np.inf) == self.shift[:, None]
+            p_min = np.where(at_min, rows, 0.0).sum(axis=1) / self.norm
+            with np.errstate(divide="ignore"):
+                self.saturated = self.rho >= -np.log(p_min)
         else:
             self.lower = np.full(dims.size, lo)
+            self.saturated = None
         spread = max(float(np.max(v)) - min(0.0, lowest), 1e-12 * self.scale)
         with np.errstate(divide="ignore", over="ignore"):
             self.b_hi = np.minimum(2.0 * spread / self.rho, _B_CAP * self.scale)
