@@ -183,6 +183,18 @@ def _max_over_actions(q: np.ndarray) -> np.ndarray:
     return v
 
 
+class _NextValue:
+    """``V_{h+1} = max_a Q_{h+1}`` on a chunk of next-state features ``(n, A, d)``; the step
+    source calls it chunk by chunk (or once on a feature table). A class, not a closure, so
+    that Dask can ship it to the workers."""
+
+    def __init__(self, weights_h, kind, beta, inv_diag, chol, upper):
+        self.args = (weights_h, kind, beta, inv_diag, chol, upper)
+
+    def __call__(self, feats, known, nonneg):
+        return _max_over_actions(_q_step(feats, *self.args, known, nonneg))
+
+
 def q_values_from_model(model: FittedModel, phi_all, h: int, *, penalty, beta, r_max,
                         known_values=None) -> np.ndarray:
     """``Q_h`` of a fitted model at features ``phi_all (n, A, d)`` -> ``(n, A)``.
@@ -243,8 +255,11 @@ def backward_induction(
         takes the cheaper from the shapes.
     """
     H, d = dataset.horizon, dataset.n_features
-    nonneg = dataset.nonnegative_next_features
-    nonneg_phi = dataset.nonnegative_features
+    # The step-major data: in memory, on disk or in Dask arrays (None: a dataset that only
+    # offers step(h), e.g. r2pvi.sparse.SparseOfflineDataset).
+    source = getattr(dataset, "_source", None)
+    nonneg_phi = dataset._nonnegative_phi  # None: checked on a step's features when needed
+    nonneg = dataset.nonnegative_next_features if source is None or time_homogeneous else None
     weights = np.zeros((H, d))
     thetas = np.zeros((H, d))
     inv_diags = np.zeros((H, d))
@@ -256,9 +271,16 @@ def backward_induction(
     next_state_values = np.zeros((H, n_rows))
     v_upper = H * r_max
     E = None
+    step_buffer = None  # one step's (K, d) float64 features, reused when they are read
     try:
         for h in range(H - 1, -1, -1):
-            phi, rewards, next_phi, next_known = pooled if time_homogeneous else dataset.step(h)
+            if time_homogeneous:
+                phi, rewards, next_phi, next_known = pooled
+            elif source is None:
+                phi, rewards, next_phi, next_known = dataset.step(h)
+            else:
+                phi = step_buffer = source.phi_step(h, step_buffer)  # next-state data: by chunk
+                rewards = source.rewards_step(h)
             sw = None if sample_weights is None else sample_weights[h]
             # ---- linear algebra: the step's factor (pooled and unweighted: factored once)
             if E is None or not time_homogeneous or sw is not None:
@@ -271,18 +293,12 @@ def backward_induction(
             if h == H - 1:
                 w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for every divergence
             else:
-                q_next = _q_step(
-                    next_phi,
-                    weights[h + 1],
-                    penalty,
-                    beta,
-                    inv_diags[h + 1],
-                    None if ellip is None else ellip[h + 1],
-                    (H - h - 1) * r_max,
-                    next_known,
-                    nonneg,
-                )
-                v_next = _max_over_actions(q_next)
+                qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
+                                  None if ellip is None else ellip[h + 1], (H - h - 1) * r_max)
+                if time_homogeneous or source is None:
+                    v_next = qmax(next_phi, next_known, nonneg)
+                else:
+                    v_next = source.next_state_values(h, qmax)
                 next_state_values[h] = v_next
                 moments[h] = E(np.stack([v_next, v_next * v_next], axis=1))
                 w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))

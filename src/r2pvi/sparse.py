@@ -93,7 +93,6 @@ class SparseOfflineDataset(OfflineDataset):
         self._snext = _next_phi  # H StackedSparse (K, A, d)
         self._next_values = _next_values  # (H, K, A) or None
         self._d, self._A = _d, _A
-        self._extras = {}
         self._nonnegative = None
         self._nonnegative_phi = None
 
@@ -174,6 +173,18 @@ class SparseOfflineDataset(OfflineDataset):
         return cls.from_rows(phi, rewards, next_phi, A, next_values)
 
     # ------------------------------------------------------------------ views
+    @property
+    def _extras(self) -> dict:
+        return {}
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.float64)
+
+    @property
+    def storage(self) -> str:
+        return "memory (sparse rows)"
+
     @property
     def n_trajectories(self) -> int:
         return self._rewards.shape[1]
