@@ -18,9 +18,9 @@ def _reproduce(args) -> int:
     from .experiments.reproduce import figure_names, reproduce_figure
 
     names = figure_names() if args.figure == "all" else [args.figure]
-    if args.figure != "all" and args.figure not in figure_names():
+    if args.figure != "all" and args.figure not in figure_names(benchmarks=True):
         print(f"r2pvi reproduce: unknown figure {args.figure!r}; choose from "
-              f"{', '.join(figure_names())} or all", file=sys.stderr)
+              f"{', '.join(figure_names(benchmarks=True))} or all", file=sys.stderr)
         return 2
     toml = load_toml(args.config) if args.config else None
     overrides = dict(parse_assignment(a) for a in args.set)
@@ -71,7 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
         "library version), NAME.png and NAME.pdf, and print a summary table. Settings come from "
         "the figure's defaults (the paper's), then --config FILE.toml, then the flags below and "
         "--set key=value. Figures: fig1a fig1b fig1c fig1d fig2a fig2b va (the paper's) and "
-        "rates bound-check (its theory).",
+        "rates bound-check (its theory); run by name only (not in 'all'): cartpole mountaincar "
+        "(classic-control robustness benchmarks).",
     )
     rep.add_argument("figure", help="figure name (fig1a ... va, rates, bound-check) or 'all'")
     rep.add_argument("--out", default="results", help="output directory (default: results)")
