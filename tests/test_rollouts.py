@@ -126,3 +126,37 @@ def test_progress_bar_only_on_a_terminal(monkeypatch):
     assert bar is not None
     bar.close()
     assert _progress_bar(False, 1000) is None
+
+
+def test_greedy_action_accepts_a_vector_envs_info():
+    import r2pvi.envs.gym  # noqa: F401  (registers the ids)
+    from r2pvi.envs import SimulatedLinearMDP
+    from r2pvi.envs.gym import greedy_action
+
+    model = SimulatedLinearMDP()
+    est = R2PVI("tv", 0.3, beta=0.1).fit(model.collect(50, seed=0))
+    venv = gym.make_vec("r2pvi/SimulatedLinearMDP-v0", 3, vectorization_mode="sync")
+    obs, info = venv.reset(seed=0)
+    for _ in range(model.horizon):
+        actions = greedy_action(est, info)
+        assert actions.shape == (3,)
+        for i in range(3):
+            one = {k: info[k][i] for k in ("phi", "known", "known_values", "step")}
+            assert greedy_action(est, one) == actions[i]
+        obs, _, _, _, info = venv.step(actions)
+
+
+def test_environments_never_import_the_adapters():
+    import ast
+    from pathlib import Path
+
+    import r2pvi
+
+    root = Path(r2pvi.__file__).parent / "envs"
+    adapters = {"gym", "minari", "collect", "perturbations"}
+    for path in root.glob("*.py"):
+        if path.stem in adapters | {"__init__"}:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                assert (node.module or "").split(".")[0] not in {"gym", "minari"}, path.name

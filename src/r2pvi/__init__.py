@@ -6,7 +6,7 @@ and exact evaluation, on one backward-induction engine.
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import envs, evaluation
+from . import envs, evaluation, features
 from .algorithms import DRPVI, DRVIL, PEVI, R2PVI, LinearEstimator
 from .algorithms import load_estimator as load
 from .data import OfflineDataset, SimplexFeatureWarning
@@ -20,6 +20,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 __all__ = [
     "envs",
     "evaluation",
+    "features",
     "OfflineDataset",
     "SimplexFeatureWarning",
     "FDivergence",

@@ -288,12 +288,6 @@ class AmericanPutOption:
         )
 
     # ------------------------------------------------------------------ ecosystem
-    def to_gymnasium(self):
-        """This option as a Gymnasium environment (needs the ``gym`` extra)."""
-        from .gym import as_gymnasium_env
-
-        return as_gymnasium_env(self)
-
     def init_kwargs(self) -> dict:
         """JSON-friendly keyword arguments that rebuild this environment."""
         return {

@@ -7,6 +7,7 @@ import time
 import numpy as np
 
 from ...envs import AmericanPutOption
+from ...evaluation import option_value
 from ..plotting import line_panels
 from ..results import format_table, summarize
 from ..runner import Task
@@ -49,14 +50,19 @@ def put_replication(seq, *, replication, algorithms, settings):
     rng = np.random.default_rng(seq)
     env = _env(settings)
     data = env.collect(settings["trajectories"], seed=rng)
-    tests = [(p, env.perturbed(p)) for p in settings["price_up"]]
+    price_up = settings["price_up"]
     rows = []
     for label, kind, param, divergence in algorithms:
         est = make_estimator(kind, param, divergence=divergence, **_common(settings, env))
         est.fit(data)
-        for p, test_env in tests:
-            value = evaluate(test_env, est, settings["evaluation"], settings["test_episodes"],
-                             rng)
+        if settings["evaluation"] == "exact":
+            # One lattice pass for every price-up probability: the policy's switch prices
+            # do not depend on it.
+            values = [float(v) for v in option_value(env, est, price_up=price_up)]
+        else:
+            values = [evaluate(env.perturbed(p), est, settings["evaluation"],
+                               settings["test_episodes"], rng) for p in price_up]
+        for p, value in zip(price_up, values, strict=True):
             rows.append({"replication": replication, "algorithm": label, "kind": kind,
                          "divergence": divergence, "param": param, "price_up": p,
                          "value": value})
