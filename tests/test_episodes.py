@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from r2pvi import DRPVI, PEVI, R2PVI, OfflineDataset, SimplexFeatureWarning
 from r2pvi.episodes import Episode, episode_observations
@@ -169,3 +171,49 @@ def test_caller_arrays_are_not_mutated():
     for x, y in zip(before, (e.observations, e.actions, e.rewards), strict=True):
         np.testing.assert_array_equal(x, y)
     assert episode_observations([e]).shape == (3, 1)
+
+
+@st.composite
+def ragged_episodes(draw):
+    n = draw(st.integers(1, 6))
+    out = []
+    for _ in range(n):
+        T = draw(st.integers(0, 5))
+        obs = draw(st.lists(st.floats(0, 1), min_size=T + 1, max_size=T + 1))
+        acts = draw(st.lists(st.integers(0, A - 1), min_size=T, max_size=T))
+        rews = draw(st.lists(st.floats(0, 1), min_size=T, max_size=T))
+        out.append(ep(obs, acts, rews, draw(st.sampled_from(["term", "trunc"]))))
+    return out
+
+
+@settings(max_examples=25, deadline=None)
+@given(eps=ragged_episodes(), order_seed=st.integers(0, 2**16))
+def test_ragged_episodes_structure_and_padding_invariance(eps, order_seed):
+    if max(len(e) for e in eps) == 0:
+        return
+    ds = OfflineDataset.from_episodes(eps, FMAP, A)
+    H = ds.horizon
+    for k, e in enumerate(eps):
+        T = len(e)
+        assert not ds.phi[k, T:].any() and not ds.rewards[k, T:].any()  # no data after the end
+        for h in range(T):
+            np.testing.assert_array_equal(ds.phi[k, h], onehot(e.observations[h, 0], e.actions[h]))
+        known = ~np.isnan(ds.next_values[k, : H - 1, 0])
+        expected = np.zeros(H - 1, bool)
+        if T and e.terminations[-1] and T - 1 < H - 1:
+            expected[T - 1] = True
+        for h in range(T, H - 1):  # padded rows repeat a real row of their step
+            real = [j for j, f in enumerate(eps) if len(f) > h]
+            if real:
+                assert any(np.array_equal(ds.next_phi[k, h], ds.next_phi[j, h])
+                           and np.array_equal(ds.next_values[k, h], ds.next_values[j, h],
+                                              equal_nan=True) for j in real)
+        np.testing.assert_array_equal(known[:T], expected[:T])
+    # Empty episodes and the order of the episodes change no estimator's weights.
+    order = np.random.default_rng(order_seed).permutation(len(eps) + 1)
+    empty = ep([0.5], [], [], "trunc")
+    more = [(eps + [empty])[i] for i in order]
+    for est in (R2PVI("tv", 0.3, beta=0.1), DRPVI(0.2, beta=0.1), R2PVI("chi2", 0.5, beta=0.1)):
+        w0 = est.fit(ds).weights_.copy()
+        w1 = est.fit(OfflineDataset.from_episodes(more, FMAP, A, horizon=H)).weights_
+        np.testing.assert_allclose(w1, w0, rtol=1e-9, atol=1e-9)

@@ -142,3 +142,32 @@ def test_feature_map_errors():
     before = X.copy()
     StateAggregation(ranges=[[-1, 1]]).fit(X).transform(X)
     np.testing.assert_array_equal(X, before)
+
+
+def test_fitted_maps_save_and_load(tmp_path):
+    from r2pvi.features import load_feature_map
+
+    X = np.random.default_rng(3).normal(size=(60, 2)) * [1.0, 50.0]
+    maps = [NormalizedRBF(n_centers=[3, 2], bandwidth=0.4),
+            NormalizedRBF(centers=X[:5], ranges=[[-3, 3], [-100, 100]]),
+            TileCoding(n_tilings=3, n_tiles=[2, 4], offsets="random", seed=9, sparse=True),
+            StateAggregation(n_bins=4)]
+    for i, m in enumerate(maps):
+        m.fit(X)
+        back = load_feature_map(m.save(tmp_path / f"m{i}"))
+        assert type(back) is type(m)
+        a, b = back.transform(X), m.transform(X)
+        a, b = (a.toarray(), b.toarray()) if sp.issparse(a) else (a, b)
+        np.testing.assert_array_equal(a, b)
+    fmap = cross_actions(maps[0], 3)
+    back = load_feature_map(fmap.save(tmp_path / "crossed.npz"))
+    acts = np.arange(60) % 3
+    np.testing.assert_array_equal(back(X, acts), fmap(X, acts))
+    with pytest.raises(RuntimeError, match="not fitted"):
+        StateAggregation().save(tmp_path / "x.npz")
+    with pytest.raises(TypeError, match="Generator"):
+        TileCoding(offsets="random", seed=np.random.default_rng(0)).fit(X).save(tmp_path / "g")
+    with pytest.raises(TypeError, match="r2pvi's feature maps"):
+        from r2pvi.features import save_feature_map
+
+        save_feature_map(cross_actions(OneHotBins(), 2), tmp_path / "o.npz")

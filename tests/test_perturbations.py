@@ -151,3 +151,21 @@ def test_perturbation_errors():
         make_perturbed("FrozenLake-v1", gravity=3.0)
     env = make_perturbed("FrozenLake-v1", action_noise=0.5)  # noise alone works anywhere
     env.reset(seed=0)
+    with pytest.raises(ValueError, match="PerturbedEnv"):  # never silently nominal
+        episode_returns(gym.make("CartPole-v1"), "uniform", 2, reset_options={"gravity": 20.0})
+
+
+def test_native_cartpole_vector_env_perturbed_like_the_single_env():
+    from r2pvi.envs.perturbations import set_env_params
+
+    params = {"gravity": 15.0, "masspole": 0.3, "length": 0.8, "force_mag": 4.0}
+    venv = gym.make_vec("CartPole-v1", 3, vectorization_mode="vector_entry_point")
+    set_env_params(venv, **params)
+    venv.reset(seed=0)
+    states = np.array(venv.unwrapped.state, dtype=float)  # (4, n)
+    venv.step(np.array([0, 1, 1]))
+    for i, a in enumerate([0, 1, 1]):
+        expected = cartpole_step(states[:, i], a, **params)
+        np.testing.assert_allclose(venv.unwrapped.state[:, i], expected, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="PerturbedEnv"):
+        set_env_params(venv, action_noise=0.1)

@@ -48,8 +48,10 @@ def test_vector_rollouts_equal_single_env_rollouts_for_the_same_seeds():
         _same(single, collect_episodes(gym.make("CartPole-v1"), policy, 7, seed=3,
                                        max_steps=60, **kwargs))
     _same(single, collect_episodes("CartPole-v1", policy, 7, seed=3, max_steps=60, n_envs=2))
-    venv = gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1")] * 4)
-    _same(single, collect_episodes(venv, policy, 7, seed=3, max_steps=60))
+    for mode in ("NextStep", "SameStep", "Disabled"):  # a vector env of any autoreset mode
+        venv = gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1")] * 4,
+                                        autoreset_mode=mode)
+        _same(single, collect_episodes(venv, policy, 7, seed=3, max_steps=60))
     returns = episode_returns(gym.make("CartPole-v1"), policy, 7, seed=3, max_steps=60,
                               n_envs=4)
     np.testing.assert_array_equal(returns, [e.total_reward for e in single])

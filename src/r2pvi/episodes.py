@@ -24,7 +24,9 @@ negative rewards (Acrobot, MountainCar pay -1 per step) are refused unless ``rew
 shifts them: adding ``c`` to every reward, and ``(H - h - 1) c`` to the absorbing state's
 value, adds ``(H - h) c`` to every policy's ``Q_h`` (and to its robust-regularized value:
 the duals commute with constants), so the greedy policies are the same and values in the
-original scale are ``Q_h - (H - h) c``. Returns measured in the environment are in the
+original scale are ``Q_h - (H - h) c`` (exactly on the model; on ridge estimates up to the
+shrinkage of ``gamma``, as ``E_hat[1]`` is slightly below 1). Set the estimator's ``r_max``
+to at least the largest shifted reward. Returns measured in the environment are in the
 original scale.
 """
 
@@ -208,44 +210,46 @@ def dataset_from_episodes(episodes, feature_map, n_actions: int, horizon: int | 
             absorbing[ends[k]] = True
 
     offset = _reward_offset(reward_offset, rews)
-    phi_flat = _dense(fmap(cur, acts), len(rews), "feature_map(observations, actions)")
+    N = len(rews)
+    phi_flat = _dense(fmap(cur, acts), N, "feature_map(observations, actions)")
     d = phi_flat.shape[1]
-    next_flat = np.empty((len(rews), A, d))
-    for a in range(A):
-        next_flat[:, a] = _dense(fmap(nxt, np.full(len(rews), a)), len(rews),
-                                 "feature_map(next observations, actions)", d)
-
-    if check_simplex:  # on the real rows: padding rows are zero on purpose
-        check_simplex_features(phi_flat, "feature_map(observations, actions)")
-        check_simplex_features(next_flat[~absorbing], "feature_map(next observations, a)")
-    phi = np.zeros((K, H, d))
-    rewards = np.zeros((K, H))
-    next_phi = np.zeros((K, H, A, d))
-    next_values = np.full((K, H, A), np.nan)
+    ok = not check_simplex or check_simplex_features(  # real rows only: padding is zero
+        phi_flat, "feature_map(observations, actions)")
+    # Step-major arrays (the storage's layout), handed over as (K, H, ...) views.
+    phi = np.zeros((H, K, d))
+    phi[h_idx, k_idx] = phi_flat
+    del phi_flat
+    next_phi = np.zeros((H, K, A, d))
+    for a in range(A):  # one action at a time: no (N, A, d) intermediate
+        out = _dense(fmap(nxt, np.full(N, a)), N, "feature_map(next observations, actions)", d)
+        if ok and check_simplex:
+            ok = check_simplex_features(out[~absorbing], "feature_map(next observations, a)")
+        next_phi[h_idx, k_idx, a] = out
+    rewards = np.zeros((H, K))
+    rewards[h_idx, k_idx] = rews + offset
+    next_values = np.full((H, K, A), np.nan)
+    # Absorbing state after termination: value (H - h - 1) * offset (0 without an offset).
+    next_values[h_idx[absorbing], k_idx[absorbing]] = (H - h_idx[absorbing] - 1)[:, None] * offset
     states = np.zeros((K, H) + obs_shape, dtype=cur.dtype)
     next_states = np.zeros((K, H) + obs_shape, dtype=cur.dtype)
     actions = np.zeros((K, H), dtype=np.int64)
-    phi[k_idx, h_idx] = phi_flat
-    rewards[k_idx, h_idx] = rews + offset
-    next_phi[k_idx, h_idx] = next_flat
-    # Absorbing state after termination: value (H - h - 1) * offset (0 without an offset).
-    next_values[k_idx[absorbing], h_idx[absorbing]] = (H - h_idx[absorbing] - 1)[:, None] * offset
     states[k_idx, h_idx] = cur
     next_states[k_idx, h_idx] = nxt
     actions[k_idx, h_idx] = acts
     # Padding: repeat a real next state of the same step (see the module docstring).
-    real = np.zeros((K, H), dtype=bool)
-    real[k_idx, h_idx] = True
-    for h in np.flatnonzero(~real.all(axis=0)):
-        have = np.flatnonzero(real[:, h])
+    real = np.zeros((H, K), dtype=bool)
+    real[h_idx, k_idx] = True
+    for h in np.flatnonzero(~real.all(axis=1)):
+        have = np.flatnonzero(real[h])
         if have.size == 0:
             continue  # no episode reaches step h: every row is empty
-        src, pad = have[0], ~real[:, h]
-        next_phi[pad, h] = next_phi[src, h]
-        next_values[pad, h] = next_values[src, h]
+        src, pad = have[0], ~real[h]
+        next_phi[h, pad] = next_phi[h, src]
+        next_values[h, pad] = next_values[h, src]
         next_states[pad, h] = next_states[src, h]
     return OfflineDataset.from_features(
-        phi, rewards, next_phi, next_values, check_simplex=False,
+        phi.transpose(1, 0, 2), rewards.T, next_phi.transpose(1, 0, 2, 3),
+        next_values.transpose(1, 0, 2), check_simplex=False,
         states=states, actions=actions, next_states=next_states,
     )
 

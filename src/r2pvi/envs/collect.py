@@ -180,7 +180,11 @@ def episode_seeds(seed, n_episodes: int):
 
 # ---------------------------------------------------------------------- vector envs
 def _vector_env(env, n_envs, n_episodes):
-    """``(vector_env, per_episode_resets)`` for ``env`` and the requested ``n_envs``."""
+    """``(vector_env, resets_subsets, owned)`` for ``env`` and the requested ``n_envs``.
+
+    ``resets_subsets``: the vector env resets a subset of its sub-environments with their own
+    seeds (``reset_mask``); ``owned``: built here, so closed after the run.
+    """
     gymnasium = _require_gymnasium()
     from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
@@ -208,6 +212,24 @@ def _vector_env(env, n_envs, n_episodes):
     )
 
 
+def _check_reset_options(venv, options: dict) -> None:
+    """Refuse perturbation options that the environment would silently ignore."""
+    from .perturbations import ACTION_NOISE, PARAMETERS
+
+    names = {ACTION_NOISE}.union(*(set(t) for t in PARAMETERS.values()))
+    asked = sorted(set(options) & names)
+    first = getattr(venv, "envs", [None])[0]
+    if not asked or first is None:
+        return
+    try:
+        first.get_wrapper_attr("set_params")
+    except AttributeError:
+        raise ValueError(
+            f"reset_options sets {asked}, but the environment does not read parameters at "
+            "reset: wrap it in r2pvi.envs.perturbations.PerturbedEnv (or make_perturbed)"
+        ) from None
+
+
 def _replicate(env):
     try:
         return copy.deepcopy(env)
@@ -233,6 +255,8 @@ def run_episodes(env, policy, n_episodes: int, *, seed=None, max_steps=None, n_e
     if reset_options is not None and not isinstance(reset_options, dict):
         raise TypeError(f"reset_options must be a dict or None, got {reset_options!r}")
     venv, per_episode, owned = _vector_env(env, n_envs, n_episodes)
+    if reset_options:
+        _check_reset_options(venv, reset_options)
     space = venv.single_action_space
     n_actions = int(space.n) if hasattr(space, "n") else None
     act = as_policy_function(policy, n_actions)
@@ -300,56 +324,61 @@ def _final_obs(info, i, fallback):
     return fallback
 
 
+def _advance(slots, rows, a, step, max_steps, record, seeds, results, bar) -> list:
+    """Record one step of the episodes in ``slots[rows]``; returns the slots that finished."""
+    nxt, rew, term, trunc, info = step
+    finished = []
+    for j, i in enumerate(rows):
+        rec = slots[i]
+        rec.t += 1
+        rec.ret += float(rew[i])
+        done = bool(term[i] or trunc[i])
+        if record:
+            rec.obs.append(_final_obs(info, i, nxt[i]) if done else nxt[i])
+            rec.actions.append(a[j])
+            rec.rewards.append(float(rew[i]))
+        cut = max_steps is not None and rec.t >= max_steps
+        if done or cut:
+            results[rec.episode] = _finish(rec, seeds, bool(term[i]), bool(trunc[i]) or cut,
+                                           record)
+            finished.append(i)
+            if bar is not None:
+                bar.update(1)
+    return finished
+
+
+def _act(act, slots, rows, obs, rngs):
+    h = np.array([slots[i].t for i in rows], dtype=np.int64)
+    return _check_actions(act(h, obs[rows], [rngs[slots[i].episode] for i in rows]), len(rows))
+
+
 def _run_per_episode(venv, act, seeds, rngs, max_steps, record, options, bar):
+    """Each sub-environment runs the next pending episode, reset with that episode's seed."""
     N = venv.num_envs
     pending = deque(range(len(seeds)))
-    slots: list[_Recorder | None] = [None] * N
     results: list = [None] * len(seeds)
-    first = []
-    for _ in range(N):
-        first.append(pending.popleft() if pending else None)
-    obs, _ = venv.reset(seed=[int(seeds[e]) if e is not None else None for e in first],
+    first = [pending.popleft() if pending else None for _ in range(N)]
+    obs, _ = venv.reset(seed=[None if e is None else int(seeds[e]) for e in first],
                         options=dict(options) if options else None)
-    for i, e in enumerate(first):
-        slots[i] = None if e is None else _Recorder(e, obs[i], record)
+    slots = [None if e is None else _Recorder(e, obs[i], record) for i, e in enumerate(first)]
     idle_action = _idle_action(venv.single_action_space)
     while any(s is not None for s in slots):
         rows = [i for i, s in enumerate(slots) if s is not None]
-        h = np.array([slots[i].t for i in rows], dtype=np.int64)
-        a = _check_actions(act(h, obs[rows], [rngs[slots[i].episode] for i in rows]), len(rows))
+        a = _act(act, slots, rows, obs, rngs)
         actions = np.array([idle_action] * N)
         actions[rows] = a
-        nxt, rew, term, trunc, info = venv.step(actions)
-        reset = np.zeros(N, dtype=bool)
-        for j, i in enumerate(rows):
-            rec = slots[i]
-            rec.t += 1
-            rec.ret += float(rew[i])
-            done = bool(term[i] or trunc[i])
-            if record:
-                rec.obs.append(_final_obs(info, i, nxt[i]) if done else nxt[i])
-                rec.actions.append(a[j])
-                rec.rewards.append(float(rew[i]))
-            cut = max_steps is not None and rec.t >= max_steps
-            if done or cut:
-                results[rec.episode] = _finish(rec, seeds, bool(term[i]), bool(trunc[i]) or cut,
-                                               record)
-                slots[i] = None
-                if bar is not None:
-                    bar.update(1)
-                reset[i] = True
-        for i in range(N):  # idle sub-environments that ended must be reset too
-            if slots[i] is None and (term[i] or trunc[i]):
-                reset[i] = True
-        obs = nxt
+        step = venv.step(actions)
+        obs, term, trunc = step[0], step[2], step[3]
+        reset = term | trunc  # idle sub-environments that ended must be reset too
+        for i in _advance(slots, rows, a, step, max_steps, record, seeds, results, bar):
+            slots[i] = None
+            reset[i] = True
         if reset.any():
-            starts = [None] * N
-            for i in np.flatnonzero(reset):
-                if pending and slots[i] is None:
-                    starts[i] = pending.popleft()
+            starts = [pending.popleft() if r and pending and slots[i] is None else None
+                      for i, r in enumerate(reset)]
             opts = dict(options)
-            opts["reset_mask"] = reset
-            obs, _ = venv.reset(seed=[int(seeds[e]) if e is not None else None for e in starts],
+            opts["reset_mask"] = np.asarray(reset, dtype=bool)
+            obs, _ = venv.reset(seed=[None if e is None else int(seeds[e]) for e in starts],
                                 options=opts)
             for i, e in enumerate(starts):
                 if e is not None:
@@ -358,6 +387,8 @@ def _run_per_episode(venv, act, seeds, rngs, max_steps, record, options, bar):
 
 
 def _run_batches(venv, act, seeds, rngs, max_steps, record, options, bar):
+    """Vector envs without per-subset seeding: batches of ``num_envs`` episodes, one seed each
+    (the first episode of every sub-environment is kept)."""
     N = venv.num_envs
     n = len(seeds)
     results: list = [None] * n
@@ -366,34 +397,14 @@ def _run_batches(venv, act, seeds, rngs, max_steps, record, options, bar):
         obs, _ = venv.reset(seed=int(seeds[start]), options=dict(options) if options else None)
         slots = [_Recorder(e, obs[i], record) for i, e in enumerate(batch)]
         live = list(range(len(batch)))
-        actions = np.zeros(N, dtype=np.int64)
         while live:
-            h = np.array([slots[i].t for i in live], dtype=np.int64)
-            a = _check_actions(act(h, obs[live], [rngs[slots[i].episode] for i in live]),
-                               len(live))
-            actions[:] = 0
+            a = _act(act, slots, live, obs, rngs)
+            actions = np.zeros(N, dtype=np.int64)
             actions[live] = a
-            nxt, rew, term, trunc, info = venv.step(actions)
-            still = []
-            for j, i in enumerate(live):
-                rec = slots[i]
-                rec.t += 1
-                rec.ret += float(rew[i])
-                done = bool(term[i] or trunc[i])
-                if record:
-                    rec.obs.append(_final_obs(info, i, nxt[i]) if done else nxt[i])
-                    rec.actions.append(a[j])
-                    rec.rewards.append(float(rew[i]))
-                cut = max_steps is not None and rec.t >= max_steps
-                if done or cut:
-                    results[rec.episode] = _finish(rec, seeds, bool(term[i]),
-                                                   bool(trunc[i]) or cut, record)
-                    if bar is not None:
-                        bar.update(1)
-                else:
-                    still.append(i)
-            live = still
-            obs = nxt
+            step = venv.step(actions)
+            obs = step[0]
+            done = set(_advance(slots, live, a, step, max_steps, record, seeds, results, bar))
+            live = [i for i in live if i not in done]
     return results if record else np.asarray(results, dtype=float)
 
 

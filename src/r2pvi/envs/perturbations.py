@@ -43,7 +43,14 @@ except ImportError:  # pragma: no cover - exercised only without the extra
     gymnasium = None
     RecordConstructorArgs = object
 
-__all__ = ["PerturbedEnv", "make_perturbed", "DiscreteTorque", "PARAMETERS", "nominal_params"]
+__all__ = [
+    "PerturbedEnv",
+    "make_perturbed",
+    "set_env_params",
+    "DiscreteTorque",
+    "PARAMETERS",
+    "nominal_params",
+]
 
 #: The parameters each environment class accepts: name -> attribute of the unwrapped env.
 PARAMETERS = {
@@ -103,6 +110,40 @@ def _recompute_derived(unwrapped) -> None:
             low=-unwrapped.max_torque, high=unwrapped.max_torque, shape=(1,), dtype=np.float32
         )
         unwrapped.observation_space = spaces.Box(low=-high, high=high, dtype=np.float32)
+
+
+def set_env_params(env, **params) -> None:
+    """Set physical parameters of ``env`` in place (absolute values) and recompute the
+    constants derived from them.
+
+    Works on any wrapping of a supported environment and on Gymnasium's own vectorized
+    ``CartPoleVectorEnv`` (``gym.make_vec("CartPole-v1", n,
+    vectorization_mode="vector_entry_point")``), whose parameters are shared by all its
+    sub-environments. For action noise, wrap single environments in :class:`PerturbedEnv`.
+
+    Examples
+    --------
+    >>> import gymnasium as gym
+    >>> from r2pvi.envs.perturbations import set_env_params
+    >>> venv = gym.make_vec("CartPole-v1", 4, vectorization_mode="vector_entry_point")
+    >>> set_env_params(venv, masspole=0.2, length=1.0)
+    >>> round(venv.unwrapped.polemass_length, 6), round(venv.unwrapped.total_mass, 6)
+    (0.2, 1.2)
+    """
+    if ACTION_NOISE in params:
+        raise ValueError("action_noise is not a physical parameter: use PerturbedEnv")
+    unwrapped = env.unwrapped
+    table = _table(unwrapped)
+    unknown = sorted(set(params) - set(table))
+    if unknown:
+        raise ValueError(
+            f"unknown parameter(s) {unknown} for {type(unwrapped).__name__}; valid: "
+            f"{sorted(table) + [ACTION_NOISE]}"
+        )
+    checked = {k: _check_value(k, v) for k, v in params.items()}
+    for k, v in checked.items():
+        setattr(unwrapped, table[k], v)
+    _recompute_derived(unwrapped)
 
 
 def nominal_params(env) -> dict:
@@ -172,23 +213,15 @@ class PerturbedEnv(_Base, RecordConstructorArgs):
     def set_params(self, **params) -> None:
         """Change parameters (absolute values); derived constants are recomputed."""
         physical = {k: v for k, v in params.items() if k != ACTION_NOISE}
-        checked = {k: _check_value(k, v) for k, v in params.items()}
-        if physical:
-            unwrapped = self.env.unwrapped
-            table = _table(unwrapped)
-            unknown = sorted(set(physical) - set(table))
-            if unknown:
-                raise ValueError(
-                    f"unknown parameter(s) {unknown} for {type(unwrapped).__name__}; valid: "
-                    f"{sorted(table) + [ACTION_NOISE]}"
-                )
-            for k in physical:
-                setattr(unwrapped, table[k], checked[k])
-            _recompute_derived(unwrapped)
-        if ACTION_NOISE in checked:
-            if checked[ACTION_NOISE] > 0 and not hasattr(self.env.action_space, "n"):
+        noise = None
+        if ACTION_NOISE in params:
+            noise = _check_value(ACTION_NOISE, params[ACTION_NOISE])
+            if noise > 0 and not hasattr(self.env.action_space, "n"):
                 raise TypeError("action_noise needs a Discrete action space")
-            self._noise = checked[ACTION_NOISE]
+        if physical:
+            set_env_params(self.env, **physical)
+        if noise is not None:
+            self._noise = noise
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed=None, options=None):

@@ -44,7 +44,8 @@ def reproduce_figure(name: str, out_dir, *, toml=None, overrides=None, seed: int
     elapsed = time.perf_counter() - t0
     config = {"settings": settings, "seed": seed, "backend": backend, "jobs": jobs,
               "claim": fig.claim}
-    paths = write_results(rows, out_dir, name, config)
+    paths = write_results(rows, out_dir, name, config, quantity=fig.quantity,
+                          unit=fig.unit)
     if plot:
         from .plotting import save_figure
 

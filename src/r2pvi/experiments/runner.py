@@ -8,7 +8,6 @@ number of workers.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -19,11 +18,15 @@ __all__ = ["Task", "run_tasks", "spawn_seeds"]
 
 @dataclass(frozen=True)
 class Task:
-    """One unit of work: ``fn(seed_sequence, **kwargs) -> list[dict]`` (result rows)."""
+    """One unit of work: ``fn(seed_sequence, **kwargs) -> list[dict]`` (result rows).
+
+    ``cost`` is its work relative to the sweep's other tasks (progress and time estimates only).
+    """
 
     fn: Callable
     kwargs: dict = field(default_factory=dict)
     label: str = ""
+    cost: float = 1.0
 
 
 def spawn_seeds(seed: int, n: int) -> list[np.random.SeedSequence]:
@@ -35,14 +38,19 @@ def _call(task: Task, seq: np.random.SeedSequence) -> list[dict]:
     return task.fn(seq, **task.kwargs)
 
 
-def _progress(iterable, total, label, enabled):
-    if not enabled:
-        return iterable
+def _progress(iterable, tasks, label, enabled, cost_of=None):
+    """Yield from ``iterable`` (one item per task, in task order unless ``cost_of(item)``
+    gives an item's cost), reporting cost-weighted progress
+    (:class:`~r2pvi.experiments.progress.SweepProgress`)."""
+    from .progress import SweepProgress
+
+    bar = SweepProgress(sum(t.cost for t in tasks), len(tasks), label, enabled)
     try:
-        from tqdm.auto import tqdm
-    except ImportError:  # pragma: no cover - tqdm is in the experiments extra
-        return iterable
-    return tqdm(iterable, total=total, desc=label, file=sys.stderr, leave=False)
+        for i, item in enumerate(iterable):
+            yield item
+            bar.advance(cost_of(item) if cost_of else tasks[i].cost)
+    finally:
+        bar.close()
 
 
 def run_tasks(
@@ -80,14 +88,14 @@ def run_tasks(
     """
     seeds = spawn_seeds(seed, len(tasks))
     if backend == "serial":
-        chunks = [_call(t, s) for t, s in _progress(zip(tasks, seeds, strict=True), len(tasks),
+        chunks = [_call(t, s) for t, s in _progress(zip(tasks, seeds, strict=True), tasks,
                                                     label, progress)]
     elif backend == "joblib":
         from joblib import Parallel, delayed
 
         parallel = Parallel(n_jobs=jobs, return_as="generator")
         gen = parallel(delayed(_call)(t, s) for t, s in zip(tasks, seeds, strict=True))
-        chunks = list(_progress(gen, len(tasks), label, progress))
+        chunks = list(_progress(gen, tasks, label, progress))
     elif backend == "dask":
         chunks = _run_dask(tasks, seeds, jobs, scheduler, progress, label)
     else:
@@ -111,7 +119,9 @@ def _run_dask(tasks, seeds, jobs, scheduler, progress, label):
         client = Client(scheduler)
     try:
         futures = client.map(_call, tasks, seeds, pure=False)
-        for _ in _progress(as_completed(futures), len(futures), label, progress):
+        index = {f.key: i for i, f in enumerate(futures)}
+        for _ in _progress(as_completed(futures), tasks, label, progress,
+                           cost_of=lambda f: tasks[index[f.key]].cost):
             pass
         return client.gather(futures)
     finally:

@@ -146,12 +146,31 @@ class ObservationTransformer:
     def _scaled(self, X) -> np.ndarray:
         """Observations mapped to the unit box: ``(x - low) / (high - low)``, (n, D)."""
         self._check_fitted()
-        X = as_observations(X, n_dims=self.n_features_in_)
-        return (X - self.low_) / self.width_
+        return self._unit(as_observations(X, n_dims=self.n_features_in_))
+
+    def _unit(self, X: np.ndarray) -> np.ndarray:
+        """``(X - low) / width``, clipped to ``[-1e6, 1e6]``.
+
+        Beyond 1e6 widths from the box every map is constant to machine precision (edge
+        cells; one-hot RBF weights), so clipping keeps features finite and unchanged, even for
+        a tiny (subnormal) fitted width.
+        """
+        with np.errstate(over="ignore"):
+            u = (X - self.low_) / self.width_
+        return np.clip(u, -1e6, 1e6, out=u)
 
     def transform(self, X):
         """Features of the observations ``X (n, D)``: ``(n, n_features_out_)``."""
         raise NotImplementedError
+
+    def save(self, path):
+        """Save the fitted map to a versioned ``.npz`` (no pickle); returns the path.
+
+        Load it with :func:`r2pvi.features.load_feature_map`.
+        """
+        from ._io import save_feature_map
+
+        return save_feature_map(self, path)
 
     def fit_transform(self, X, y=None):
         """``fit(X)`` then ``transform(X)``."""

@@ -81,7 +81,7 @@ class NormalizedRBF(ObservationTransformer):
                     f"centers must be a finite (m, D={D}) array of observation points, "
                     f"got shape {c.shape}"
                 )
-            self.centers_ = (c - self.low_) / self.width_
+            self.centers_ = self._unit(c)
             if self.bandwidth is None:
                 if len(c) == 1:
                     sigma = np.ones(D)
@@ -309,6 +309,12 @@ class ActionCrossing:
         out = np.zeros((n, self.n_actions * m))
         out[np.arange(n)[:, None], a[:, None] * m + np.arange(m)] = psi
         return out
+
+    def save(self, path):
+        """Save the fitted crossing (its observation map and ``n_actions``); returns the path."""
+        from ._io import save_feature_map
+
+        return save_feature_map(self, path)
 
     @property
     def n_features_out_(self) -> int:
