@@ -114,7 +114,7 @@ def test_every_figure_runs_at_tiny_size(tmp_path, name):
 def test_cli_reproduce_with_overrides_and_errors(tmp_path, capsys):
     code = main(["reproduce", "fig1a", "--out", str(tmp_path), "--lam", "0.3",
                  "--replications", "2", "--xi-norms", "0.2", "--set", "qs=[0.0, 0.5]",
-                 "--no-progress", "--no-plot"])
+                 "--no-progress", "--no-plot", "--jobs", "1"])
     assert code == 0
     data = read_results(tmp_path / "fig1a.json")
     assert data["config"]["settings"]["lam"] == 0.3
@@ -124,6 +124,6 @@ def test_cli_reproduce_with_overrides_and_errors(tmp_path, capsys):
     toml = tmp_path / "c.toml"
     toml.write_text("replications = 1\n[fig1a]\nxi_norms = [0.1]\nqs = [1.0]\n")
     assert main(["reproduce", "fig1a", "--out", str(tmp_path), "--config", str(toml),
-                 "--no-progress", "--no-plot"]) == 0
+                 "--no-progress", "--no-plot", "--jobs", "1"]) == 0
     data = read_results(tmp_path / "fig1a.json")
     assert data["config"]["settings"]["xi_norms"] == [0.1]

@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+import r2pvi
 from r2pvi.features import (
     ActionCrossing,
     NormalizedRBF,
@@ -110,7 +111,7 @@ def test_sklearn_conventions_and_foreign_transformers():
     assert c.get_params() == m.get_params() and not hasattr(c, "low_")
     X = np.random.default_rng(2).normal(size=(40, 2))
     assert m.fit(X) is m
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(r2pvi.NotFittedError, match="not fitted"):
         NormalizedRBF().transform(X)
     with pytest.raises(ValueError, match="dimensions"):
         m.transform(np.zeros((3, 5)))
@@ -163,7 +164,7 @@ def test_fitted_maps_save_and_load(tmp_path):
     back = load_feature_map(fmap.save(tmp_path / "crossed.npz"))
     acts = np.arange(60) % 3
     np.testing.assert_array_equal(back(X, acts), fmap(X, acts))
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(r2pvi.NotFittedError, match="not fitted"):
         StateAggregation().save(tmp_path / "x.npz")
     with pytest.raises(TypeError, match="Generator"):
         TileCoding(offsets="random", seed=np.random.default_rng(0)).fit(X).save(tmp_path / "g")

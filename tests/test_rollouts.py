@@ -5,6 +5,8 @@ import io
 import numpy as np
 import pytest
 
+import r2pvi
+
 gym = pytest.importorskip("gymnasium")
 
 from r2pvi import PEVI, R2PVI, OfflineDataset  # noqa: E402
@@ -100,7 +102,7 @@ def test_learned_policy_acts_batched_and_beyond_its_horizon():
     mean, se = evaluate_policy(gym.make("CartPole-v1"), policy, 6, seed=0, max_steps=50,
                                n_envs=3)
     assert 0 < mean <= 50 and se >= 0
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(r2pvi.NotFittedError, match="not fitted"):
         PEVI().as_policy(fmap)
 
 

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import brentq, minimize
 
-from r2pvi import PEVI, R2PVI, OfflineDataset, load
+from r2pvi import PEVI, R2PVI, NotFittedError, OfflineDataset, load
 from r2pvi.duals import (
     CHI2,
     FactorExpectation,
@@ -282,7 +282,7 @@ def test_uncertainty_term_errors():
         uncertainty_term(env, inv, "hellinger", 1.0)
     with pytest.raises(ValueError, match="shape"):
         uncertainty_term(env, np.full((2, 4), 0.1), "tv", 1.0)
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         uncertainty_term(env, R2PVI(), "tv", 1.0)
     with pytest.raises(TypeError, match="finite linear MDP"):
         uncertainty_term("env", inv, "tv", 1.0)

@@ -31,5 +31,16 @@ __all__ = [
     "DRPVI",
     "DRVIL",
     "load",
+    "NotFittedError",
     "__version__",
 ]
+
+
+def __getattr__(name):
+    # NotFittedError derives from scikit-learn's when it is installed: built on first use so
+    # that ``import r2pvi`` does not import scikit-learn.
+    if name == "NotFittedError":
+        from ._compat import not_fitted_error
+
+        return not_fitted_error()
+    raise AttributeError(f"module 'r2pvi' has no attribute {name!r}")

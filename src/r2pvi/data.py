@@ -15,8 +15,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ._io import load_npz, save_npz
-from ._validation import as_float_array
+from ._io import file_error, load_npz, save_npz
+from ._validation import as_float_array, as_index_array
 
 __all__ = ["OfflineDataset", "SimplexFeatureWarning", "check_simplex_features"]
 
@@ -172,7 +172,10 @@ class OfflineDataset:
             arr = np.asarray(value)
             if arr.shape[:2] != (K, H):
                 raise ValueError(f"{name} must start with (K, H) = {(K, H)}, got {arr.shape}")
-            extras[name] = arr.astype(np.int64) if name == "actions" else arr
+            if name == "actions":
+                arr = as_index_array(arr, "actions", A, ndim=2)
+            # A private, read-only copy: the caller's array is neither shared nor mutable here.
+            extras[name] = _readonly(np.array(arr, copy=True))
         return cls(
             _phi=np.ascontiguousarray(phi.transpose(1, 0, 2)),
             _rewards=np.ascontiguousarray(rewards.T),
@@ -235,13 +238,7 @@ class OfflineDataset:
         actions_arr = np.asarray(actions)
         if actions_arr.ndim != 2:
             raise ValueError(f"actions must have shape (K, H), got {actions_arr.shape}")
-        if not np.issubdtype(actions_arr.dtype, np.integer):
-            if np.issubdtype(actions_arr.dtype, np.floating) and np.all(
-                actions_arr == np.round(actions_arr)
-            ):
-                actions_arr = actions_arr.astype(np.int64)
-            else:
-                raise TypeError("actions must be integer action indices")
+        actions_arr = as_index_array(actions_arr, "actions", int(n_actions), ndim=2)
         K, H = actions_arr.shape
         if states.shape[:2] != (K, H) or next_states.shape[:2] != (K, H):
             raise ValueError(
@@ -420,11 +417,15 @@ class OfflineDataset:
         idx = np.asarray(indices)
         if idx.dtype == bool:
             if idx.shape != (self.n_trajectories,):
-                raise ValueError("a boolean mask must have one entry per trajectory")
+                raise ValueError(
+                    f"a boolean mask must have one entry per trajectory (K = "
+                    f"{self.n_trajectories}), got shape {idx.shape}"
+                )
             idx = np.flatnonzero(idx)
         if idx.ndim != 1 or idx.size == 0:
             raise ValueError("indices must select at least one trajectory")
-        extras = {k: v[idx] for k, v in self._extras.items()}
+        idx = as_index_array(idx, "indices", self.n_trajectories, ndim=1)
+        extras = {k: _readonly(v[idx]) for k, v in self._extras.items()}
         return OfflineDataset(
             _phi=np.ascontiguousarray(self._phi[:, idx]),
             _rewards=np.ascontiguousarray(self._rewards[:, idx]),
@@ -473,15 +474,26 @@ class OfflineDataset:
     def load(cls, path) -> OfflineDataset:
         """Load a dataset written by :meth:`save`."""
         arrays, _ = load_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION)
+        known = {"phi", "rewards", "next_phi", "next_values"}
+        known |= {"extra_" + k for k in ("states", "actions", "next_states")}
+        for name in sorted(known - set(arrays)):
+            if not name.startswith("extra_"):
+                raise file_error(path, name, "is missing")
+        unknown = sorted(set(arrays) - known)
+        if unknown:
+            raise file_error(path, unknown[0], "is not a field of an OfflineDataset file")
         extras = {k[len("extra_") :]: v for k, v in arrays.items() if k.startswith("extra_")}
-        return cls.from_features(
-            arrays["phi"],
-            arrays["rewards"],
-            arrays["next_phi"],
-            arrays["next_values"],
-            check_simplex=False,
-            **extras,
-        )
+        try:  # the loaded arrays go through the same checks as from_features
+            return cls.from_features(
+                arrays["phi"],
+                arrays["rewards"],
+                arrays["next_phi"],
+                arrays["next_values"],
+                check_simplex=False,
+                **extras,
+            )
+        except (TypeError, ValueError) as exc:
+            raise file_error(path, None, f"holds invalid data: {exc}") from None
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:

@@ -14,6 +14,7 @@ import numpy as np
 
 from .algorithms import PEVI, R2PVI
 from .data import OfflineDataset
+from .envs._sampling import as_generator, check_count
 
 __all__ = ["run_demo", "demo_returns", "random_linear_mdp_dataset"]
 
@@ -26,8 +27,9 @@ def random_linear_mdp_dataset(n_trajectories=500, horizon=3, n_states=6, n_actio
 
     Returns the dataset, the features ``phi (S, A, d)`` and the reward weights ``theta (H, d)``.
     """
-    rng = np.random.default_rng(seed)
-    S, A, d, H, K = n_states, n_actions, n_features, horizon, n_trajectories
+    K = check_count(n_trajectories, "n_trajectories")
+    rng = as_generator(seed)
+    S, A, d, H = n_states, n_actions, n_features, horizon
     phi = rng.dirichlet(0.3 * np.ones(d), size=(S, A))  # simplex features
     mu = rng.dirichlet(0.5 * np.ones(S), size=(H, d))  # factor distributions over states
     theta = rng.uniform(0.0, 1.0, size=(H, d))

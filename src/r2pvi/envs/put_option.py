@@ -206,7 +206,9 @@ class AmericanPutOption:
     def _check_estimator(self, est) -> None:
         horizon = getattr(est, "horizon_", None)
         if horizon is None:
-            raise ValueError(
+            from .._compat import not_fitted_error
+
+            raise not_fitted_error()(
                 f"the {type(est).__name__} is not fitted: call fit(env.collect(...)) first"
             )
         if horizon != self.H or est.n_features_in_ != self.d:

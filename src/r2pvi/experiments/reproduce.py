@@ -6,7 +6,7 @@ import sys
 import time
 from pathlib import Path
 
-from .config import merge_settings
+from .config import check_settings, merge_settings
 from .figures import FIGURES, IN_ALL
 from .results import write_results
 from .runner import run_tasks
@@ -32,7 +32,7 @@ def reproduce_figure(name: str, out_dir, *, toml=None, overrides=None, seed: int
         raise ValueError(f"unknown figure {name!r}; choose from {', '.join(FIGURES)} or 'all'")
     fig = FIGURES[name]
     stream = stream or sys.stdout
-    settings = merge_settings(name, fig.defaults, toml, overrides)
+    settings = check_settings(name, merge_settings(name, fig.defaults, toml, overrides))
     tasks = fig.tasks(settings)
     if fig.serial and backend != "serial":
         print(f"[{name}] timings run serially in one process (ignoring the {backend} backend)",

@@ -4,10 +4,15 @@ A sweep is a list of :class:`Task` (one setting x one replication). Task ``i`` g
 ``i``-th child of ``SeedSequence(seed).spawn(len(tasks))``, so its random numbers depend only
 on the seed and its position in the sweep: results are identical whatever the backend and the
 number of workers.
+
+Every task runs with one BLAS thread by default (``blas_threads``; the environment variable
+``R2PVI_BLAS_THREADS`` overrides it, 0 leaves BLAS alone): parallelism comes from processes,
+one per core, not from BLAS threads competing for the same cores.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -34,8 +39,19 @@ def spawn_seeds(seed: int, n: int) -> list[np.random.SeedSequence]:
     return np.random.SeedSequence(seed).spawn(n)
 
 
-def _call(task: Task, seq: np.random.SeedSequence) -> list[dict]:
-    return task.fn(seq, **task.kwargs)
+def _call(task: Task, seq: np.random.SeedSequence, threads: int = 0) -> list[dict]:
+    from .._threads import limit_blas
+
+    with limit_blas(threads):
+        return task.fn(seq, **task.kwargs)
+
+
+def _check_jobs(jobs) -> int:
+    if isinstance(jobs, bool) or not isinstance(jobs, int | np.integer) or not (
+        jobs >= 1 or jobs == -1
+    ):
+        raise ValueError(f"jobs must be an integer >= 1, or -1 for one per core; got {jobs!r}")
+    return (os.cpu_count() or 1) if jobs == -1 else int(jobs)
 
 
 def _progress(iterable, tasks, label, enabled, cost_of=None):
@@ -62,6 +78,7 @@ def run_tasks(
     scheduler: str | None = None,
     progress: bool = False,
     label: str = "sweep",
+    blas_threads: int | None = None,
 ) -> list[dict]:
     """Run every task and return all result rows, in task order.
 
@@ -74,8 +91,13 @@ def run_tasks(
         "joblib" runs ``jobs`` local processes; "dask" sends the tasks to the Dask cluster at
         ``scheduler`` (an address such as ``tcp://host:8786``) or, when ``scheduler`` is
         None, to a local ``LocalCluster`` with ``jobs`` workers.
+    jobs : int
+        Worker processes (joblib) or Dask workers; -1 means one per core.
     progress : bool
         Show a progress bar on standard error.
+    blas_threads : int, optional
+        BLAS threads of each task; None takes ``R2PVI_BLAS_THREADS`` or, when it is unset,
+        1; 0 leaves BLAS alone. Needs ``threadpoolctl`` (else BLAS is left alone).
 
     Examples
     --------
@@ -86,24 +108,28 @@ def run_tasks(
     ...                   jobs=2)
     True
     """
+    from .._threads import blas_threads as _threads
+
+    jobs = _check_jobs(jobs)
+    threads = _threads(1) if blas_threads is None else int(blas_threads)
     seeds = spawn_seeds(seed, len(tasks))
     if backend == "serial":
-        chunks = [_call(t, s) for t, s in _progress(zip(tasks, seeds, strict=True), tasks,
-                                                    label, progress)]
+        chunks = [_call(t, s, threads) for t, s in
+                  _progress(zip(tasks, seeds, strict=True), tasks, label, progress)]
     elif backend == "joblib":
         from joblib import Parallel, delayed
 
         parallel = Parallel(n_jobs=jobs, return_as="generator")
-        gen = parallel(delayed(_call)(t, s) for t, s in zip(tasks, seeds, strict=True))
+        gen = parallel(delayed(_call)(t, s, threads) for t, s in zip(tasks, seeds, strict=True))
         chunks = list(_progress(gen, tasks, label, progress))
     elif backend == "dask":
-        chunks = _run_dask(tasks, seeds, jobs, scheduler, progress, label)
+        chunks = _run_dask(tasks, seeds, jobs, scheduler, progress, label, threads)
     else:
         raise ValueError(f"backend must be 'serial', 'joblib' or 'dask', got {backend!r}")
     return [row for chunk in chunks for row in chunk]
 
 
-def _run_dask(tasks, seeds, jobs, scheduler, progress, label):
+def _run_dask(tasks, seeds, jobs, scheduler, progress, label, threads):
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError as exc:  # pragma: no cover - exercised without the extra
@@ -118,7 +144,7 @@ def _run_dask(tasks, seeds, jobs, scheduler, progress, label):
     else:
         client = Client(scheduler)
     try:
-        futures = client.map(_call, tasks, seeds, pure=False)
+        futures = client.map(_call, tasks, seeds, [threads] * len(tasks), pure=False)
         index = {f.key: i for i, f in enumerate(futures)}
         for _ in _progress(as_completed(futures), tasks, label, progress,
                            cost_of=lambda f: tasks[index[f.key]].cost):

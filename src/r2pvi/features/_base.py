@@ -7,6 +7,8 @@ import numbers
 
 import numpy as np
 
+from .._compat import not_fitted_error
+
 __all__ = ["ObservationTransformer", "as_observations", "check_positive_int_or_seq"]
 
 
@@ -137,7 +139,7 @@ class ObservationTransformer:
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "low_"):
-            raise RuntimeError(
+            raise not_fitted_error()(
                 f"this {type(self).__name__} is not fitted yet; call fit(observations) first "
                 "(r2pvi.episodes.episode_observations(episodes) stacks an episode list's "
                 "observations)"

@@ -6,6 +6,7 @@ import numbers
 
 import numpy as np
 
+from .._compat import not_fitted_error
 from .._io import load_npz, save_npz
 
 __all__ = ["save_feature_map", "load_feature_map"]
@@ -27,7 +28,7 @@ def _encode(state_map, prefix: str, arrays: dict) -> dict:
             "parameters yourself"
         )
     if not hasattr(state_map, "low_"):
-        raise RuntimeError(f"this {name} is not fitted yet; call fit(observations) first")
+        raise not_fitted_error()(f"this {name} is not fitted yet; call fit(observations) first")
     params = {}
     for key, value in state_map.get_params().items():
         if value is None or isinstance(value, bool | str):

@@ -113,10 +113,22 @@ def _merge_exact_rows(rows):
             seen.add((r["algorithm"], r["q"]))
         out.append(r)
     return out
+def _shown_columns(values, preferred, limit):
+    """The q columns of a summary table: every q when there are at most ``limit``, else the
+    ``preferred`` ones that were run, else ``limit`` evenly spaced ones (never none)."""
+    values = sorted(set(values))
+    if len(values) <= limit:
+        return values
+    chosen = [v for v in preferred if v in values]
+    if len(chosen) >= 2:
+        return chosen
+    idx = np.unique(np.linspace(0, len(values) - 1, limit).round().astype(int))
+    return [values[i] for i in idx]
 
 
 def _table_by_q(rows, settings, columns=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0)):
     out = []
+    columns = _shown_columns(settings["qs"], columns, len(columns))
     for xi_norm in settings["xi_norms"]:
         sub = [r for r in _merge_exact_rows([r for r in rows if r["xi_norm"] == xi_norm])
                if r["q"] in columns]  # merged on every q, shown on a few
@@ -177,8 +189,9 @@ def _fig1b_plot(rows, s):
 
 
 def _fig1b_table(rows, s):
+    columns = _shown_columns(s["qs"], (0.0, 0.5, 1.0), 3)
     sub = [dict(r, setting=f"xi={r['xi_norm']} {r['algorithm']}") for r in rows
-           if r["q"] in (0.0, 0.5, 1.0)]
+           if r["q"] in columns]
     return ("average return by q (mean±std over replications)\n"
             + format_table(summarize(sub, ["setting", "q"]), "setting", "q"))
 
