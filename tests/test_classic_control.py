@@ -133,9 +133,16 @@ def test_cartpole_end_to_end_through_the_cli(tmp_path, capsys):
     assert data["config"]["settings"]["horizon"] == 25
 
 
-def test_benchmarks_run_by_name_only():
+def test_benchmarks_run_by_name_only(tmp_path):
+    from r2pvi.cli import build_parser, plan_reproduce
+
     assert "cartpole" not in figure_names() and "mountaincar" not in figure_names()
     assert {"cartpole", "mountaincar"} <= set(figure_names(benchmarks=True))
+    planned = [name for name, _ in plan_reproduce(build_parser().parse_args(
+        ["reproduce", "all", "--out", str(tmp_path), "--no-plot"]))]
+    assert "fig1a" in planned and "cartpole" not in planned and "mountaincar" not in planned
+    planned = plan_reproduce(build_parser().parse_args(["reproduce", "cartpole"]))
+    assert [name for name, _ in planned] == ["cartpole"]
 
 
 def test_replication_is_seeded_and_mountaincar_runs():
