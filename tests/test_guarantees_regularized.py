@@ -346,6 +346,40 @@ def test_chi2_constant_values_return_the_constant_exactly():
         np.testing.assert_array_equal(chi2_regularized(E, np.full(7, 1e9), lam), 1e9)
 
 
+def test_chi2_constant_values_on_ridge_and_clipped_moments_are_exact():
+    # The centered moments: no E[V^2] - E[V]^2 cancellation (it was ~1e19 here).
+    rng = np.random.default_rng(2)
+    phi = rng.dirichlet(np.ones(3), size=50)
+    E = RidgeExpectation(phi, cholesky_gram(phi, 0.1))
+    np.testing.assert_array_equal(chi2_regularized(E, np.full(50, 1e9), 1e-4),
+                                  1e9 * row_sums(E))
+    F = FactorExpectation(rng.dirichlet(np.ones(5), size=3))
+    np.testing.assert_array_equal(
+        chi2_regularized(F, np.full(5, 1e9), 1e-4, (0.0, 2e9), (0.0, 4e18)), 1e9)
+
+
+def test_chi2_large_values_and_small_lambda_match_the_exact_primal():
+    # Values up to 1e6 and lam = 1e-3: the piecewise solver's rounding (~eps V^2 / lam) gave
+    # twice the true excess over the minimum; the exact dual's proven interval holds it.
+    # Truth: with gaps >> lam the primal's optimum is the point mass on the support's
+    # minimum m (KKT), at cost lam chi^2 = lam (1/p - 1); the scaled QP agrees.
+    from primal import chi2_primal
+
+    rng = np.random.default_rng(1)
+    v = np.array([0.0, 5e5 + 0.123, 7e5, 1e6, 3e5 + 0.7])
+    mu = rng.dirichlet(np.ones(5), size=3)
+    mu[:, 0] = 0.0
+    mu /= mu.sum(axis=1, keepdims=True)
+    lam = 1e-3
+    m = np.where(mu > 0, v, np.inf).min(axis=1)
+    p = np.where(v == m[:, None], mu, 0.0).sum(axis=1)
+    truth = m + lam * (1.0 / p - 1.0)
+    scaled = np.array([chi2_primal(v / 1e6, row, lam / 1e6) for row in mu]) * 1e6
+    np.testing.assert_allclose(scaled - m, truth - m, rtol=1e-6)
+    np.testing.assert_allclose(chi2_regularized(FactorExpectation(mu), v, lam), truth,
+                               rtol=0, atol=1e-7)
+
+
 def test_chi2_tiny_lambda_is_finite_and_the_support_minimum():
     rng = np.random.default_rng(1)
     mu = rng.dirichlet(np.ones(6), size=3)

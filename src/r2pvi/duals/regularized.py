@@ -12,7 +12,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from .fdivergence import FDivergence
-from .operators import ExpectationOperator
+from .operators import ExpectationOperator, FactorExpectation
 from .piecewise import blockwise_max, dense_max
 
 __all__ = [
@@ -157,7 +157,9 @@ def chi2_regularized(
     difference of two large numbers, so constant values return the constant exactly; the
     clips then apply to the moments of ``U`` (pass ``(0, V_max - c)`` and
     ``(0, (V_max - c)^2)``). On a true-model operator (rows are distributions) and without
-    clips the result is also kept in the interval the exact dual provably lies in,
+    clips each factor is centered at the smallest value ``m_i`` of its own support (where the
+    maximizer sits as ``lam -> 0``), and the result is kept in the interval the exact dual
+    provably lies in,
     ``[m_i, min(E_i V, m_i + lam (1/p_i - 1))]`` with ``m_i`` the smallest value on the
     support of factor i and ``p_i`` its mass (the point mass at ``m_i`` costs
     ``lam chi^2 = lam (1/p_i - 1)``): for ``lam`` below the resolution of the values (down
@@ -185,21 +187,36 @@ def chi2_regularized(
     if method not in ("dense", "blockwise"):
         raise ValueError(f"method must be 'auto', 'dense' or 'blockwise', got {method!r}")
     v = np.asarray(v, dtype=float)
+    if center and E.nonnegative and mean_clip is None and second_clip is None:
+        # True-model operator: center each factor at the smallest value of its own support,
+        # where the maximizer sits for small lam (prefix sums then hold no large values).
+        mu = E.rows()
+        m = np.where(mu > 0.0, v[None, :], np.inf).min(axis=1)
+        w = np.empty(E.n_dims)
+        for g in np.unique(m):
+            rows = np.flatnonzero(m == g)
+            sub = E if rows.size == E.n_dims else FactorExpectation(mu[rows])
+            w[rows] = g + _chi2_core(sub, v - g, lam, None, None, method)
+        return _within_exact_chi2_bounds(E, v, lam, w)
     c = float(np.min(v)) if center else 0.0
-    u = v - c if center else v
-    lo_v, hi_v = float(np.min(u)), float(np.max(u))
-    # E([V]^2_alpha) = C + B alpha^2 is monotone on a segment that does not contain alpha = 0.
-    extra = (0.0,) if lo_v < 0.0 < hi_v else ()
-    solve = dense_max if method == "dense" else blockwise_max
-    # For lam far below the values' resolution the quadratic term overflows: +-inf, and the
-    # bounds below (or the rule's range) take over.
-    with np.errstate(over="ignore", invalid="ignore"):
-        w = solve(E, u, lam, mean_clip, second_clip, extra)
+    w = _chi2_core(E, v - c if center else v, lam, mean_clip, second_clip, method)
     if center and c != 0.0:
         w = w + (c if E.nonnegative else c * row_sums(E))
     if E.nonnegative and mean_clip is None and second_clip is None:
         w = _within_exact_chi2_bounds(E, v, lam, w)
     return w
+
+
+def _chi2_core(E, u, lam, mean_clip, second_clip, method):
+    """The exact maximum over alpha for values ``u`` (see :func:`chi2_regularized`)."""
+    lo_v, hi_v = float(np.min(u)), float(np.max(u))
+    # E([V]^2_alpha) = C + B alpha^2 is monotone on a segment that does not contain alpha = 0.
+    extra = (0.0,) if lo_v < 0.0 < hi_v else ()
+    solve = dense_max if method == "dense" else blockwise_max
+    # For lam far below the values' resolution the quadratic term overflows: +-inf, and the
+    # exact bounds (or the rule's range) take over.
+    with np.errstate(over="ignore", invalid="ignore"):
+        return solve(E, u, lam, mean_clip, second_clip, extra)
 
 
 def _within_exact_chi2_bounds(E, v, lam, w):
