@@ -380,6 +380,24 @@ def test_chi2_large_values_and_small_lambda_match_the_exact_primal():
                                rtol=0, atol=1e-7)
 
 
+@pytest.mark.parametrize("seed", [12, 54, 70])
+def test_chi2_below_the_values_resolution_stays_in_the_proven_interval(seed):
+    # The exact dual lies in [m, m + lam (1/p - 1)] (m: the support's minimum, p: its mass).
+    # With ties and lam far below the values' resolution the solver's rounding gave 1e172.
+    rng = np.random.default_rng(seed)
+    S = rng.integers(2, 9)
+    mu = rng.dirichlet(np.full(S, rng.choice([0.05, 0.7])), size=2)
+    v = rng.uniform(0, 1e6, S) * rng.choice([1, 1e-9, 1e9])
+    if seed % 3 == 0:
+        v = np.round(v, -3)
+    lam = 10.0 ** rng.uniform(-300, 2)
+    got = chi2_regularized(FactorExpectation(mu), v, lam)
+    m = np.where(mu > 0, v, np.inf).min(axis=1)
+    p = np.where(v == m[:, None], mu, 0.0).sum(axis=1)
+    assert np.all(got >= m)
+    assert np.all(got <= np.minimum(mu @ v, m + lam * (1.0 / p - 1.0)) * (1 + 1e-15))
+
+
 def test_chi2_tiny_lambda_is_finite_and_the_support_minimum():
     rng = np.random.default_rng(1)
     mu = rng.dirichlet(np.ones(6), size=3)
