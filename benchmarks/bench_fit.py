@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 import r2pvi
+from r2pvi._threads import limit_blas
 from r2pvi.algorithms import DRPVI, DRVIL
 from r2pvi.duals.operators import RidgeExpectation, cholesky_gram
 
@@ -33,10 +34,13 @@ def make_dataset(K, H, d, A=2, seed=0):
 
 
 def floor_fit(ds, gamma=1.0):
-    """The H Gram matrices (Cholesky-factored) and the H ridge solves."""
-    for h in range(ds.horizon):
-        phi, rewards, _, _ = ds.step(h)
-        RidgeExpectation(phi, cholesky_gram(phi, gamma))(rewards)
+    """The H Gram matrices (Cholesky-factored) and the H ridge solves, with the BLAS threads
+    of a fit (one unless ``R2PVI_BLAS_THREADS`` says otherwise), so the ratios compare like
+    with like."""
+    with limit_blas():
+        for h in range(ds.horizon):
+            phi, rewards, _, _ = ds.step(h)
+            RidgeExpectation(phi, cholesky_gram(phi, gamma))(rewards)
 
 
 def interleaved_medians(fns: dict, repeats: int) -> dict:

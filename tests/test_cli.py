@@ -1,20 +1,161 @@
 """The command line: help and the demo run end to end."""
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
+import pytest
+
+import r2pvi
 from r2pvi.cli import main
 
 
-def test_demo_runs_and_prints_every_estimator(capsys):
-    assert main(["demo", "--trajectories", "200", "--seed", "1"]) == 0
+def test_demo_shows_returns_under_a_shift_side_by_side(capsys):
+    assert main(["demo", "--trajectories", "100", "--seed", "1"]) == 0
     out = capsys.readouterr().out
-    for name in ("PEVI", "R2PVI-TV", "R2PVI-KL", "R2PVI-chi2"):
+    for name in ("PEVI", "R2PVI-TV", "R2PVI-KL", "R2PVI-chi2", "q = 0", "q = 1"):
         assert name in out
-    assert "greedy action" in out
+
+
+def test_demo_numbers_are_exact_returns_and_robustness_shows():
+    from r2pvi.demo import demo_returns
+    from r2pvi.envs import SimulatedLinearMDP
+    from r2pvi.evaluation import expected_return, optimal_policy
+
+    out = demo_returns(seed=0, n_datasets=3, qs=(0.0, 1.0))
+    env = SimulatedLinearMDP(xi_norm=0.3)
+    best = optimal_policy(env)
+    nominal = out["nominal optimum (knows the model)"][0]
+    assert nominal == pytest.approx([expected_return(env.perturbed(0.0), best),
+                                     expected_return(env.perturbed(1.0), best)])
+    pevi, tv = out["PEVI (non-robust)"].mean(0), out["R2PVI-TV   lam=0.1"].mean(0)
+    assert nominal[0] >= pevi[0] - 1e-12  # nothing beats the optimum without shift
+    assert abs(tv[1] - tv[0]) < abs(pevi[1] - pevi[0])  # R2PVI-TV holds up under the shift
 
 
 def test_help_lists_commands():
     res = subprocess.run([sys.executable, "-m", "r2pvi", "--help"], capture_output=True,
                          text=True, check=True)
     assert "demo" in res.stdout
+
+
+# --------------------------------------------------------------------------- usage errors
+SRC = str(Path(r2pvi.__file__).resolve().parents[1])
+
+
+def _bad_files(tmp):
+    (tmp / "typo.toml").write_text("lamm = 0.3\n")
+    (tmp / "table.toml").write_text("[fig7]\nlam = 1\n")
+    (tmp / "key.toml").write_text("[fig1a]\nrho = 1\n")
+    (tmp / "bad.toml").write_text("[fig1a\n")
+    (tmp / "latin1.toml").write_bytes("lam = 0.3 # \xe9\n".encode("latin-1"))
+    (tmp / "afile").write_text("x")
+    return tmp
+
+
+USAGE_CASES = [
+    (["reproduce", "all", "--set", "lamm=0.3"], "no figure has a setting 'lamm'; did you mean"
+                                                " 'lam'?"),
+    (["reproduce", "fig1a", "--set", "rho=0.3"], "fig1a has no setting 'rho'"),
+    (["reproduce", "fig1a", "--replications", "0"], "'replications' must be >= 1, got 0"),
+    (["reproduce", "all", "--replications", "1000000000"], "'replications' must be <= 10000"),
+    (["reproduce", "fig1a", "--jobs", "0"], "--jobs must be >= 1, or -1"),
+    (["reproduce", "fig1a", "--jobs", "-2"], "--jobs must be >= 1, or -1"),
+    (["reproduce", "fig1a", "--seed", "-1"], "--seed must be >= 0"),
+    (["reproduce", "fig1a", "--set", "qs=[]"], "'qs' must be a non-empty list"),
+    (["reproduce", "fig1a", "--set", "qs=1.5"], "'qs' must be <= 1.0, got 1.5"),
+    (["reproduce", "fig1a", "--set", "xi_norms=abc"], "'xi_norms' must be a number"),
+    (["reproduce", "fig1a", "--set", "exact_optimum=3"], "must be true or false"),
+    (["reproduce", "fig1a", "--set", "novalue"], "--set expects key=value"),
+    (["reproduce", "fig1a", "--lams", "1,a"], "invalid comma-separated numbers value"),
+    (["reproduce", "fig1a", "--divergences", "tv,foo"], "unknown divergence 'foo'"),
+    (["reproduce", "rates", "--divergences", "hellinger"], "'divergences' must be one of tv"),
+    (["reproduce", "fig1a", "--test-episodes", "1"], "'test_episodes' must be >= 2"),
+    (["reproduce", "fig9"], "unknown figure 'fig9'"),
+    (["reproduce", "fig1a", "--config", "{tmp}/typo.toml"], "unknown setting 'lamm'"),
+    (["reproduce", "fig1a", "--config", "{tmp}/table.toml"], "unknown table [fig7]"),
+    (["reproduce", "fig1a", "--config", "{tmp}/key.toml"], "[fig1a] has no setting 'rho'"),
+    (["reproduce", "fig1a", "--config", "{tmp}/bad.toml"], "is not valid TOML"),
+    (["reproduce", "fig1a", "--config", "{tmp}/latin1.toml"], "is not UTF-8"),
+    (["reproduce", "fig1a", "--config", "{tmp}/absent.toml"], "config file not found"),
+    (["reproduce", "fig1a", "--out", "{tmp}/afile"], "exists and is not a directory"),
+    (["reproduce", "fig1a", "--out", "{tmp}/afile/sub"], "not a writable directory"),
+    (["demo", "--trajectories", "-5"], "--trajectories must be >= 1"),
+    (["demo", "--seed", "-3"], "--seed must be >= 0"),
+    (["bogus"], "invalid choice: 'bogus'"),
+    (["reproduce", "fig1a", "--xi-norms", "0.5"], "'delta' and xi_norm: delta = 0.3 and xi_norm"
+                                                  " = 0.5 give features off the simplex"),
+    (["reproduce", "rates", "--set", "xi_norm=0.9"], "'mdp_delta' and xi_norm"),
+]
+
+
+def test_usage_errors_in_process_are_one_line_exit_2(tmp_path, capsys):
+    tmp = _bad_files(tmp_path)
+    for argv, match in USAGE_CASES:
+        argv = [a.format(tmp=tmp) for a in argv]
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("r2pvi: error: ") and err.count("\n") == 1, (argv, err)
+        assert match in err, (argv, err)
+    assert sorted(p.name for p in tmp.iterdir()) == sorted(
+        ["typo.toml", "table.toml", "key.toml", "bad.toml", "latin1.toml", "afile"]
+    )  # no output directory, no result file: nothing ran
+
+
+def test_usage_errors_from_the_command_line_in_subprocesses(tmp_path):
+    tmp = _bad_files(tmp_path)
+    env = {**os.environ, "PYTHONPATH": SRC}
+    # A few cases end to end (each starts Python); every case runs in process above.
+    picked = [USAGE_CASES[i] for i in (0, 3, 20, 25)]
+    procs = [(argv, match, subprocess.Popen(
+        [sys.executable, "-m", "r2pvi", *(a.format(tmp=tmp) for a in argv)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env))
+        for argv, match in picked]
+    for argv, match, proc in procs:
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2, (argv, err)
+        assert err.startswith("r2pvi: error: ") and err.count("\n") == 1, (argv, err)
+        assert match in err and "Traceback" not in err, (argv, err)
+    debug = subprocess.run([sys.executable, "-m", "r2pvi", "reproduce", "fig1a",
+                            "--replications", "0", "--debug"], capture_output=True, text=True,
+                           env=env, timeout=120)
+    assert debug.returncode != 0 and "Traceback" in debug.stderr
+    assert "UsageError: fig1a: setting 'replications' must be >= 1" in debug.stderr
+
+
+def test_missing_matplotlib_is_a_usage_error_before_work(tmp_path, monkeypatch, capsys):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "matplotlib" else real(name, *a))
+    out = tmp_path / "res"
+    assert main(["reproduce", "fig1a", "--out", str(out), "--jobs", "1"]) == 2
+    assert "plotting (pass --no-plot" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_failures_while_running_are_one_line_exit_1(tmp_path, capsys, monkeypatch):
+    from r2pvi.experiments import reproduce
+
+    def boom(*a, **k):
+        raise ValueError("the solver\nfailed")
+
+    monkeypatch.setattr(reproduce, "reproduce_figure", boom)
+    assert main(["reproduce", "fig1a", "--out", str(tmp_path), "--no-progress", "--no-plot",
+                 "--jobs", "1"]) == 1
+    err = capsys.readouterr().err
+    assert err == ("r2pvi: error: the solver failed (ValueError; rerun with --debug for the "
+                   "traceback)\n")
+
+
+def test_summary_tables_show_the_qs_that_ran(tmp_path, capsys):
+    for qs, want in (("0.5", ["0.5"]), ("[0.25,0.75]", ["0.25", "0.75"])):
+        assert main(["reproduce", "fig1a", "--out", str(tmp_path), "--set", f"qs={qs}",
+                     "--set", "xi_norms=0.3", "--replications", "1", "--no-progress",
+                     "--no-plot", "--jobs", "1", "--divergences", "tv"]) == 0
+        table = capsys.readouterr().out
+        header = next(line for line in table.splitlines() if line.startswith("algorithm"))
+        assert header.split()[1:] == want, table
+        assert "R2PVI-TV" in table and "±" in table

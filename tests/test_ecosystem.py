@@ -17,6 +17,7 @@ import pytest
 
 from r2pvi import R2PVI
 from r2pvi.envs import AmericanPutOption, FiniteLinearMDP, HardInstance, SimulatedLinearMDP
+from r2pvi.envs.gym import as_gymnasium_env
 from r2pvi.evaluation import expected_return
 
 REQUIRE_EXTRAS = bool(os.environ.get("CI") or os.environ.get("R2PVI_REQUIRE_EXTRAS"))
@@ -110,7 +111,7 @@ def test_fitted_estimator_acts_in_the_gymnasium_put_option(gym):
 
     model = AmericanPutOption(H=8, d=10)
     est = R2PVI("tv", 1.0, beta=0.1, r_max=model.r_max).fit(model.collect(300, seed=0))
-    env = model.to_gymnasium()
+    env = as_gymnasium_env(model)
     returns = []
     for episode in range(3000):
         obs, info = env.reset(seed=episode)
@@ -128,13 +129,13 @@ def test_fitted_estimator_acts_in_the_gymnasium_put_option(gym):
 def test_spec_rebuilds_the_model(gym):
     for model in (SimulatedLinearMDP(0.3, 0.1).perturbed(0.2), AmericanPutOption(p0=0.4, d=7),
                   HardInstance(2, 3, 0.5, 0.1, 0.2, [[1, -1]] * 3, "kl")):
-        env = model.to_gymnasium()
+        env = as_gymnasium_env(model)
         rebuilt = gym.make(env.spec).unwrapped.model
         assert type(rebuilt) is type(model) and rebuilt.init_kwargs() == model.init_kwargs()
 
 
 def test_gymnasium_step_errors(gym):
-    env = SimulatedLinearMDP().to_gymnasium()
+    env = as_gymnasium_env(SimulatedLinearMDP())
     with pytest.raises(RuntimeError, match="reset"):
         env.step(0)
     env.reset(seed=0)
@@ -214,7 +215,9 @@ sys.meta_path.insert(0, Block())
 import r2pvi.envs.gym, r2pvi.envs.minari
 from r2pvi.envs import SimulatedLinearMDP
 env = SimulatedLinearMDP()
-for call in (env.to_gymnasium, lambda: r2pvi.envs.minari.to_minari(env.collect(2), env, 'a-v0')):
+calls = (lambda: r2pvi.envs.gym.as_gymnasium_env(env),
+         lambda: r2pvi.envs.minari.to_minari(env.collect(2), env, 'a-v0'))
+for call in calls:
     try:
         call()
     except ImportError as exc:

@@ -5,7 +5,7 @@ import pytest
 from primal import chi2_primal, smooth_primal, tv_primal
 from scipy.special import xlogy
 
-from r2pvi import PEVI, R2PVI, FDivergence, OfflineDataset, cressie_read, load
+from r2pvi import PEVI, R2PVI, FDivergence, NotFittedError, OfflineDataset, cressie_read, load
 from r2pvi.duals import (
     CHI2,
     KL,
@@ -288,7 +288,7 @@ def test_more_pessimism_lowers_q_values_not_weights():
 def test_q_values_known_values_act_and_errors():
     ds, feat, theta = small_dataset()
     est = R2PVI("tv", 1.0, reward_weights=theta)
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         est.q_values(feat, 0)
     est.fit(ds)
     known = np.full(feat.shape[:2], np.nan)
@@ -350,5 +350,5 @@ def test_save_refuses_custom_divergences_and_load_checks_class(tmp_path):
     path = PEVI().fit(ds).save(tmp_path / "p")
     with pytest.raises(TypeError, match="not a R2PVI"):
         R2PVI.load(path)
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         PEVI().save(tmp_path / "q")

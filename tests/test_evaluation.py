@@ -373,6 +373,24 @@ def test_put_option_lattice_integration_is_exact(put_estimator):
     assert exact > 0.5
 
 
+def test_put_option_values_for_many_price_up_probabilities_match_one_by_one(put_estimator):
+    env, est = put_estimator
+    ps = [0.2, 0.5, 0.55, 1.0]
+    threshold = lambda h, p: p < 97.0 - 0.2 * h  # noqa: E731
+    for pol in (est, threshold, "uniform"):
+        together = option_value(env, pol, price_up=ps)
+        one_by_one = [option_value(env.perturbed(p), pol) for p in ps]
+        assert together.shape == (4,)
+        np.testing.assert_allclose(together, one_by_one, rtol=0, atol=1e-12)
+    s0 = np.array([96.0, 101.5])
+    np.testing.assert_allclose(option_value(env, est, s0=s0, price_up=ps),
+                               [option_value(env.perturbed(p), est, s0=s0) for p in ps],
+                               rtol=0, atol=1e-12)
+    for bad in ([], [0.5, 1.5], [[0.5]]):
+        with pytest.raises(ValueError, match="price_up"):
+            option_value(env, est, price_up=bad)
+
+
 def test_put_option_lattice_agrees_with_monte_carlo(put_estimator):
     env, est = put_estimator
     threshold = lambda h, p: p < 97.0 - 0.2 * h  # noqa: E731

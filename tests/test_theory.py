@@ -7,7 +7,6 @@ the divergences' definitions; beta and the bounds are the paper's expressions ty
 """
 
 import itertools
-import json
 import math
 
 import numpy as np
@@ -16,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import brentq, minimize
 
-from r2pvi import PEVI, R2PVI, OfflineDataset, load
+from r2pvi import PEVI, R2PVI, NotFittedError, OfflineDataset, load
 from r2pvi.duals import (
     CHI2,
     FactorExpectation,
@@ -28,6 +27,7 @@ from r2pvi.duals import (
 from r2pvi.envs import FiniteLinearMDP, HardInstance, SimulatedLinearMDP
 from r2pvi.evaluation import optimal_policy, robust_values, suboptimality
 from r2pvi.experiments import reproduce_figure
+from r2pvi.experiments.results import read_results
 from r2pvi.theory import (
     admissible_radii,
     ball_sup,
@@ -282,7 +282,7 @@ def test_uncertainty_term_errors():
         uncertainty_term(env, inv, "hellinger", 1.0)
     with pytest.raises(ValueError, match="shape"):
         uncertainty_term(env, np.full((2, 4), 0.1), "tv", 1.0)
-    with pytest.raises(RuntimeError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         uncertainty_term(env, R2PVI(), "tv", 1.0)
     with pytest.raises(TypeError, match="finite linear MDP"):
         uncertainty_term("env", inv, "tv", 1.0)
@@ -439,7 +439,7 @@ def test_rates_and_bound_check_figures_run_end_to_end(tmp_path, capsys):
                                         "divergences": ["kl", "chi2"]})
     assert len(check["rows"]) == 2 * 3 * 2
     assert "holds" in capsys.readouterr().out
-    saved = json.loads((tmp_path / "bound-check.json").read_text())
+    saved = read_results(tmp_path / "bound-check.json")
     assert saved["config"]["settings"]["betas"] == ["theory"]
     # the same seed gives the same numbers
     again = reproduce_figure("bound-check", tmp_path, progress=False, plot=False,

@@ -6,7 +6,7 @@ and exact evaluation, on one backward-induction engine.
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import envs, evaluation
+from . import envs, evaluation, features
 from .algorithms import DRPVI, DRVIL, PEVI, R2PVI, LinearEstimator
 from .algorithms import load_estimator as load
 from .data import OfflineDataset, SimplexFeatureWarning
@@ -20,6 +20,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 __all__ = [
     "envs",
     "evaluation",
+    "features",
     "OfflineDataset",
     "SimplexFeatureWarning",
     "FDivergence",
@@ -30,5 +31,16 @@ __all__ = [
     "DRPVI",
     "DRVIL",
     "load",
+    "NotFittedError",
     "__version__",
 ]
+
+
+def __getattr__(name):
+    # NotFittedError derives from scikit-learn's when it is installed: built on first use so
+    # that ``import r2pvi`` does not import scikit-learn.
+    if name == "NotFittedError":
+        from ._compat import not_fitted_error
+
+        return not_fitted_error()
+    raise AttributeError(f"module 'r2pvi' has no attribute {name!r}")

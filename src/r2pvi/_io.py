@@ -1,29 +1,94 @@
-"""Versioned ``.npz`` files with an embedded JSON header (never pickles)."""
+"""Versioned ``.npz`` files with an embedded JSON header (never pickles).
+
+Saves are atomic: the archive is written to a temporary file in the target's directory and
+moved over the target with :func:`os.replace`, so a save that fails part-way (disk full, a
+file-size limit, an exception) leaves any previous file intact. Loads check everything they
+read and report a bad file as a ``ValueError`` naming the file and the field.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import secrets
 from pathlib import Path
 
 import numpy as np
 
+__all__ = ["save_npz", "load_npz", "FileFieldError", "file_array", "file_error"]
+
 _META_KEY = "__r2pvi_meta__"
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+
+
+class FileFieldError(ValueError):
+    """A saved file is unreadable or one of its fields is invalid (names file and field)."""
+
+
+def file_error(path, field: str | None, problem: str) -> FileFieldError:
+    """The error for a bad ``field`` (None: the file as a whole) of the file at ``path``."""
+    where = f"{path}" if field is None else f"{path}: field {field!r}"
+    return FileFieldError(f"{where} {problem}")
 
 
 def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta: dict) -> Path:
-    """Write ``arrays`` and a JSON header ``{"kind", "format_version", **meta}`` to ``path``."""
+    """Write ``arrays`` and a JSON header ``{"kind", "format_version", **meta}`` to ``path``.
+
+    The write goes to a temporary file next to ``path``, then replaces ``path`` atomically.
+    """
     path = Path(os.fspath(path))
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
+    if path.is_dir():
+        raise IsADirectoryError(f"cannot save to {path}: it is a directory")
     header = {"kind": kind, "format_version": version, **meta}
     payload = {k: np.asarray(v) for k, v in arrays.items()}
     if _META_KEY in payload:
         raise ValueError(f"array name {_META_KEY!r} is reserved")
     payload[_META_KEY] = np.array(json.dumps(header, sort_keys=True))
-    with open(path, "wb") as fh:
-        np.savez_compressed(fh, **payload)  # type: ignore[arg-type]
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+    try:
+        with open(tmp, "xb") as fh:  # honours the umask, like a plain open(path, "wb")
+            np.savez_compressed(fh, **payload)  # type: ignore[arg-type]
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
     return path
+
+
+def _read(path: Path) -> tuple[dict[str, np.ndarray], str]:
+    """Every array of the archive and the raw header text; bad archives -> FileFieldError."""
+    if path.is_dir():
+        raise file_error(path, None, "is a directory, not an r2pvi .npz file")
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if not magic:
+        raise file_error(path, None, "is empty (0 bytes): not an r2pvi .npz file")
+    if magic not in _ZIP_MAGIC:
+        raise file_error(path, None, "is not an r2pvi .npz file (not a zip archive)")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            if _META_KEY not in npz.files:
+                raise file_error(path, _META_KEY, "is missing: not an r2pvi file")
+            meta = npz[_META_KEY]
+            arrays = {k: npz[k] for k in npz.files if k != _META_KEY}
+    except FileFieldError:
+        raise
+    except ValueError as exc:  # object arrays (pickles) are refused by allow_pickle=False
+        raise file_error(path, None, f"holds an array r2pvi cannot read safely: {exc}") from None
+    except Exception as exc:  # BadZipFile, zlib.error, EOFError, OSError, NotImplementedError
+        # (an unknown compression method), RuntimeError (encrypted), MemoryError, ...
+        raise file_error(
+            path, None, f"is damaged or truncated ({type(exc).__name__}: {exc})"
+        ) from None
+    if meta.ndim != 0 or meta.dtype.kind != "U":
+        raise file_error(path, _META_KEY, "must be a JSON string")
+    return arrays, str(meta)
 
 
 def load_npz(path, kind: str, max_version: int) -> tuple[dict[str, np.ndarray], dict]:
@@ -31,17 +96,42 @@ def load_npz(path, kind: str, max_version: int) -> tuple[dict[str, np.ndarray], 
     path = Path(os.fspath(path))
     if not path.exists():
         raise FileNotFoundError(f"no such file: {path}")
-    with np.load(path, allow_pickle=False) as npz:
-        if _META_KEY not in npz.files:
-            raise ValueError(f"{path} is not an r2pvi file (no {_META_KEY} header)")
-        header = json.loads(str(npz[_META_KEY]))
-        arrays = {k: npz[k] for k in npz.files if k != _META_KEY}
+    arrays, text = _read(path)
+    try:
+        header = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise file_error(path, "header", f"is not valid JSON: {exc}") from None
+    if not isinstance(header, dict):
+        raise file_error(path, "header", f"must be a JSON object, got {type(header).__name__}")
     if header.get("kind") != kind:
-        raise ValueError(f"{path} holds a {header.get('kind')!r}, not a {kind!r}")
+        raise file_error(path, "kind", f"is {header.get('kind')!r}: the file does not hold a "
+                         f"{kind!r}")
     version = header.get("format_version")
-    if not isinstance(version, int) or version > max_version:
-        raise ValueError(
-            f"{path} has format version {version!r}; this r2pvi reads versions <= {max_version}: "
-            "upgrade r2pvi"
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise file_error(path, "format_version", f"must be an integer >= 1, got {version!r}")
+    if version > max_version:
+        raise file_error(
+            path, "format_version",
+            f"says format version {version}; this r2pvi reads versions <= {max_version}: "
+            "upgrade r2pvi",
         )
     return arrays, header
+
+
+def file_array(path, arrays: dict, name: str, *, ndim: int | None = None,
+               shape: tuple | None = None, allow_nan: bool = False) -> np.ndarray:
+    """The float array ``name`` of a loaded file, checked (present, numeric, shape, finite)."""
+    if name not in arrays:
+        raise file_error(path, name, "is missing")
+    arr = arrays[name]
+    if arr.dtype.kind not in "biuf":
+        raise file_error(path, name, f"must be numeric, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if ndim is not None and arr.ndim != ndim:
+        raise file_error(path, name, f"must have {ndim} dimensions, got shape {arr.shape}")
+    if shape is not None and arr.shape != shape:
+        raise file_error(path, name, f"must have shape {shape}, got {arr.shape}")
+    bad = np.isinf(arr) if allow_nan else ~np.isfinite(arr)
+    if bad.any():
+        raise file_error(path, name, f"has {int(bad.sum())} NaN or infinite entries")
+    return arr

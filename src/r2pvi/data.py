@@ -15,8 +15,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ._io import load_npz, save_npz
-from ._validation import as_float_array
+from ._io import file_error, load_npz, save_npz
+from ._validation import as_float_array, as_index_array
 
 __all__ = ["OfflineDataset", "SimplexFeatureWarning", "check_simplex_features"]
 
@@ -172,7 +172,10 @@ class OfflineDataset:
             arr = np.asarray(value)
             if arr.shape[:2] != (K, H):
                 raise ValueError(f"{name} must start with (K, H) = {(K, H)}, got {arr.shape}")
-            extras[name] = arr.astype(np.int64) if name == "actions" else arr
+            if name == "actions":
+                arr = as_index_array(arr, "actions", A, ndim=2)
+            # A private, read-only copy: the caller's array is neither shared nor mutable here.
+            extras[name] = _readonly(np.array(arr, copy=True))
         return cls(
             _phi=np.ascontiguousarray(phi.transpose(1, 0, 2)),
             _rewards=np.ascontiguousarray(rewards.T),
@@ -235,13 +238,7 @@ class OfflineDataset:
         actions_arr = np.asarray(actions)
         if actions_arr.ndim != 2:
             raise ValueError(f"actions must have shape (K, H), got {actions_arr.shape}")
-        if not np.issubdtype(actions_arr.dtype, np.integer):
-            if np.issubdtype(actions_arr.dtype, np.floating) and np.all(
-                actions_arr == np.round(actions_arr)
-            ):
-                actions_arr = actions_arr.astype(np.int64)
-            else:
-                raise TypeError("actions must be integer action indices")
+        actions_arr = as_index_array(actions_arr, "actions", int(n_actions), ndim=2)
         K, H = actions_arr.shape
         if states.shape[:2] != (K, H) or next_states.shape[:2] != (K, H):
             raise ValueError(
@@ -280,6 +277,54 @@ class OfflineDataset:
             actions=actions_arr,
             next_states=next_states,
         )
+
+    @classmethod
+    def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | None = None,
+                      *, reward_offset=None, check_simplex: bool = True) -> OfflineDataset:
+        """Build a dataset from episodes of any length (Gymnasium rollouts, Minari datasets).
+
+        Parameters
+        ----------
+        episodes : minari.MinariDataset or iterable
+            Episodes with Minari's ``EpisodeData`` fields (objects or dicts):
+            ``observations (T+1, ...)``, ``actions (T,)``, ``rewards (T,)``,
+            ``terminations (T,)``, ``truncations (T,)``.
+        feature_map : callable or fitted transformer
+            ``feature_map(observations, actions) -> (n, d)`` (e.g.
+            ``r2pvi.features.cross_actions(NormalizedRBF().fit(obs), n_actions)``), or a
+            fitted observation transformer, crossed with the actions block-wise.
+        n_actions : int
+            Number of discrete actions A.
+        horizon : int, optional
+            H; None takes the longest episode. Longer episodes are cut at H.
+        reward_offset : None, "auto" or float
+            Negative rewards are refused unless shifted by ``reward_offset`` (an exact
+            shift: the same greedy policy; see :mod:`r2pvi.episodes`).
+        check_simplex : bool, default True
+
+        A terminated episode continues in an absorbing state of known value 0; a truncated
+        one ends without a terminal value; steps after an episode's end carry zero features
+        (no data). Details: :mod:`r2pvi.episodes`.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> from r2pvi.features import StateAggregation, cross_actions
+        >>> ep = {"observations": [[0.0], [0.4], [0.9]], "actions": [1, 0],
+        ...       "rewards": [1.0, 1.0], "terminations": [False, True],
+        ...       "truncations": [False, False]}
+        >>> fmap = cross_actions(StateAggregation(n_bins=2).fit([[0.0], [1.0]]), 2)
+        >>> ds = OfflineDataset.from_episodes([ep], fmap, n_actions=2, horizon=3)
+        >>> ds.phi[0].tolist()                     # two steps, then no data
+        [[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]
+        >>> ds.next_values[0, 1].tolist()          # terminated: absorbing, value 0
+        [0.0, 0.0]
+        """
+        from .episodes import dataset_from_episodes
+
+        return dataset_from_episodes(episodes, feature_map, n_actions, horizon,
+                                     reward_offset=reward_offset, check_simplex=check_simplex)
 
     # ------------------------------------------------------------------ views
     @property
@@ -372,11 +417,15 @@ class OfflineDataset:
         idx = np.asarray(indices)
         if idx.dtype == bool:
             if idx.shape != (self.n_trajectories,):
-                raise ValueError("a boolean mask must have one entry per trajectory")
+                raise ValueError(
+                    f"a boolean mask must have one entry per trajectory (K = "
+                    f"{self.n_trajectories}), got shape {idx.shape}"
+                )
             idx = np.flatnonzero(idx)
         if idx.ndim != 1 or idx.size == 0:
             raise ValueError("indices must select at least one trajectory")
-        extras = {k: v[idx] for k, v in self._extras.items()}
+        idx = as_index_array(idx, "indices", self.n_trajectories, ndim=1)
+        extras = {k: _readonly(v[idx]) for k, v in self._extras.items()}
         return OfflineDataset(
             _phi=np.ascontiguousarray(self._phi[:, idx]),
             _rewards=np.ascontiguousarray(self._rewards[:, idx]),
@@ -425,15 +474,26 @@ class OfflineDataset:
     def load(cls, path) -> OfflineDataset:
         """Load a dataset written by :meth:`save`."""
         arrays, _ = load_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION)
+        known = {"phi", "rewards", "next_phi", "next_values"}
+        known |= {"extra_" + k for k in ("states", "actions", "next_states")}
+        for name in sorted(known - set(arrays)):
+            if not name.startswith("extra_"):
+                raise file_error(path, name, "is missing")
+        unknown = sorted(set(arrays) - known)
+        if unknown:
+            raise file_error(path, unknown[0], "is not a field of an OfflineDataset file")
         extras = {k[len("extra_") :]: v for k, v in arrays.items() if k.startswith("extra_")}
-        return cls.from_features(
-            arrays["phi"],
-            arrays["rewards"],
-            arrays["next_phi"],
-            arrays["next_values"],
-            check_simplex=False,
-            **extras,
-        )
+        try:  # the loaded arrays go through the same checks as from_features
+            return cls.from_features(
+                arrays["phi"],
+                arrays["rewards"],
+                arrays["next_phi"],
+                arrays["next_values"],
+                check_simplex=False,
+                **extras,
+            )
+        except (TypeError, ValueError) as exc:
+            raise file_error(path, None, f"holds invalid data: {exc}") from None
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:

@@ -12,9 +12,12 @@ import numbers
 
 import numpy as np
 
-from .._io import load_npz, save_npz
+from .._compat import SklearnCompatMixin, not_fitted_error
+from .._io import file_array, file_error, load_npz, save_npz
+from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
+from ..duals.operators import GramMatrixError, cholesky_gram
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
@@ -25,7 +28,7 @@ ESTIMATOR_REGISTRY: dict[str, type] = {}
 _FITTED = ("weights_", "reward_weights_", "gram_cholesky_", "gram_inv_diag_")
 
 
-class LinearEstimator:
+class LinearEstimator(SklearnCompatMixin):
     """Base class of the pessimistic value-iteration estimators (PEVI, R2PVI, DRPVI, ...).
 
     Subclasses declare their parameters in ``__init__`` and implement :meth:`_make_rule`
@@ -120,16 +123,19 @@ class LinearEstimator:
 
     # ------------------------------------------------------------------ fitting
     def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None):
-        return backward_induction(
-            dataset,
-            self._make_rule(params),
-            beta=params["beta"],
-            gamma=params["gamma"],
-            penalty=params["penalty"],
-            r_max=params["r_max"],
-            reward_weights=params["reward_weights"],
-            sample_weights=sample_weights,
-        )
+        try:
+            return backward_induction(
+                dataset,
+                self._make_rule(params),
+                beta=params["beta"],
+                gamma=params["gamma"],
+                penalty=params["penalty"],
+                r_max=params["r_max"],
+                reward_weights=params["reward_weights"],
+                sample_weights=sample_weights,
+            )
+        except GramMatrixError as exc:
+            raise _gram_error_with_step(exc, dataset, params["gamma"], sample_weights) from None
 
     def _fit_model(self, dataset: OfflineDataset, params: dict) -> FittedModel:
         """The fitted model; variance-aware subclasses override this with two passes."""
@@ -144,7 +150,8 @@ class LinearEstimator:
             )
         params = self._validate_common(dataset)
         params.update(self._validate_extra(dataset))
-        model = self._fit_model(dataset, params)
+        with limit_blas():  # one BLAS thread by default: see r2pvi._threads
+            model = self._fit_model(dataset, params)
         self._set_fitted(model, params, dataset.n_actions)
         return self
 
@@ -159,7 +166,7 @@ class LinearEstimator:
 
     def _check_fitted(self):
         if not hasattr(self, "weights_"):
-            raise RuntimeError(
+            raise not_fitted_error()(
                 f"this {type(self).__name__} is not fitted yet; call fit(dataset) first"
             )
 
@@ -209,6 +216,18 @@ class LinearEstimator:
     def values(self, phi_all, h: int, known_values=None) -> np.ndarray:
         """Greedy values ``V_h = max_a Q_h`` at step ``h``, ``(n,)``."""
         return np.max(self.q_values(phi_all, h, known_values), axis=1)
+
+    def as_policy(self, feature_map, *, beyond_horizon: str = "receding"):
+        """This fitted estimator as a policy ``(h, observations) -> actions`` for Gymnasium.
+
+        ``feature_map`` is the one the dataset was built with (see
+        :class:`~r2pvi.algorithms._policy.GreedyPolicy`); the policy works with
+        :func:`r2pvi.envs.collect_episodes` and :func:`r2pvi.evaluation.evaluate_policy`.
+        """
+        from ._policy import GreedyPolicy
+
+        self._check_fitted()
+        return GreedyPolicy(self, feature_map, beyond_horizon=beyond_horizon)
 
     # ------------------------------------------------------------------ I/O
     def _params_to_json(self) -> tuple[dict, dict]:
@@ -265,7 +284,9 @@ def _jsonable(name, value):
             )
         return {"__divergence__": spec}
     if value is None or isinstance(value, bool | str):
-        return value
+        return value if not isinstance(value, str) else str(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
     if isinstance(value, numbers.Integral):
         return int(value)
     if isinstance(value, numbers.Real):
@@ -273,23 +294,96 @@ def _jsonable(name, value):
     raise TypeError(f"cannot save parameter {name}={value!r} of type {type(value).__name__}")
 
 
+def _gram_error_with_step(exc, dataset, gamma, sample_weights) -> GramMatrixError:
+    """The same error, naming the (0-based) step whose Gram matrix has no Cholesky factor."""
+    for h in range(dataset.horizon - 1, -1, -1):
+        sw = None if sample_weights is None else sample_weights[h]
+        try:
+            cholesky_gram(dataset.step(h)[0], gamma, sw)
+        except GramMatrixError:
+            return GramMatrixError(f"step h = {h} (0-based): {exc}")
+    return exc
+
+
+class _Shape:
+    """What fit's parameter checks read from a dataset, rebuilt from a saved model."""
+
+    def __init__(self, horizon: int, n_features: int):
+        self.horizon, self.n_features, self.n_trajectories = horizon, n_features, 2
+
+
 def load_estimator(path):
-    """Load any estimator saved with ``save`` (dispatches on the class recorded in the file)."""
+    """Load any estimator saved with ``save`` (dispatches on the class recorded in the file).
+
+    Every field is checked: the parameters go through the same checks as ``fit``, and the
+    fitted arrays must have consistent shapes, finite entries, lower-triangular Cholesky
+    factors with a positive diagonal and positive ``gram_inv_diag_``. A bad file raises a
+    ``ValueError`` naming the file and the field.
+    """
     from ..duals.fdivergence import get_divergence
 
     arrays, header = load_npz(path, "estimator", MODEL_FORMAT_VERSION)
     name = header.get("estimator")
-    if name not in ESTIMATOR_REGISTRY:
-        raise ValueError(f"{path} holds an unknown estimator {name!r}")
+    if not isinstance(name, str) or name not in ESTIMATOR_REGISTRY:
+        raise file_error(path, "estimator", f"is {name!r}, not one of {sorted(ESTIMATOR_REGISTRY)}")
     cls = ESTIMATOR_REGISTRY[name]
+    raw = header.get("params")
+    if not isinstance(raw, dict):
+        raise file_error(path, "params", "must be a JSON object")
+    unknown = sorted(set(raw) - set(cls._param_names()))
+    if unknown:
+        raise file_error(path, "params", f"has unknown parameters {unknown} for {name}")
     params = {}
-    for key, value in header["params"].items():
+    for key, value in raw.items():
         if isinstance(value, dict) and "__array__" in value:
-            value = arrays[value["__array__"]]
+            value = file_array(path, arrays, str(value["__array__"]))
         elif isinstance(value, dict) and "__divergence__" in value:
-            value = get_divergence(value["__divergence__"])
+            try:
+                value = get_divergence(value["__divergence__"])
+            except (TypeError, ValueError, KeyError) as exc:
+                raise file_error(path, f"params.{key}", f"is not a divergence: {exc}") from None
         params[key] = value
     est = cls(**params)
-    model = FittedModel(*(arrays[n] for n in _FITTED))
-    est._set_fitted(model, header["fit_params"], int(header["n_actions"]))
+    weights = file_array(path, arrays, "weights_", ndim=2)
+    H, d = weights.shape
+    if H < 1 or d < 1:
+        raise file_error(path, "weights_", f"must have H, d >= 1, got shape {(H, d)}")
+    model = FittedModel(
+        weights,
+        file_array(path, arrays, "reward_weights_", shape=(H, d)),
+        file_array(path, arrays, "gram_cholesky_", shape=(H, d, d)),
+        file_array(path, arrays, "gram_inv_diag_", shape=(H, d)),
+    )
+    diag = np.diagonal(model.gram_cholesky, axis1=1, axis2=2)
+    if np.any(np.triu(model.gram_cholesky, k=1)) or np.any(diag <= 0):
+        raise file_error(path, "gram_cholesky_", "must be lower-triangular with a positive "
+                         "diagonal (Cholesky factors of the Gram matrices)")
+    if np.any(model.gram_inv_diag <= 0):
+        raise file_error(path, "gram_inv_diag_", "must be > 0 (the diagonal of Lambda_h^-1), "
+                         f"got min {model.gram_inv_diag.min()!r}")
+    try:  # the parameters go through fit's own checks
+        checked = est._validate_common(_Shape(H, d))
+        checked.update(est._validate_extra(_Shape(H, d)))
+    except (TypeError, ValueError) as exc:
+        raise file_error(path, "params", f"fail the estimator's checks: {exc}") from None
+    fit_params = header.get("fit_params")
+    if not isinstance(fit_params, dict) or set(fit_params) != {"beta", "penalty", "r_max"}:
+        raise file_error(path, "fit_params", "must be an object with beta, penalty and r_max")
+    try:
+        fp = {
+            "beta": check_scalar(fit_params["beta"], "beta", low=0.0),
+            "penalty": check_choice(fit_params["penalty"], "penalty", est._penalty_choices),
+            "r_max": check_scalar(fit_params["r_max"], "r_max", low=0.0, low_inclusive=False),
+        }
+    except (TypeError, ValueError) as exc:
+        raise file_error(path, "fit_params", str(exc)) from None
+    for key in ("penalty", "r_max") + (() if isinstance(params.get("beta"), str) else ("beta",)):
+        if fp[key] != checked[key]:
+            raise file_error(path, f"fit_params.{key}", f"is {fp[key]!r} but the parameters "
+                             f"say {checked[key]!r}: the file was altered")
+    n_actions = header.get("n_actions")
+    if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 1:
+        raise file_error(path, "n_actions", f"must be an integer >= 1, got {n_actions!r}")
+    est._set_fitted(model, fp, n_actions)
     return est
+

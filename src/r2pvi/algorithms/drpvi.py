@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..duals.constrained import tv_constrained
-from ..engine import StepRule
+from ..engine import StepContext, StepRule
 from ._params import check_flag, check_radius, check_v_min, floor_value
 from ._variance import VarianceAwareMixin
 from .base import LinearEstimator
 
-__all__ = ["DRPVI", "TVBallRule"]
+__all__ = ["DRPVI", "TVBallRule", "step_value_range"]
+
+
+def step_value_range(v: np.ndarray, ctx: StepContext) -> tuple[float, float]:
+    """The known range of ``V_{h+1}``: ``[0, (H - h - 1) r_max]`` (the engine clips every
+    learned ``Q_{h+1}`` to it), widened to hold known next-state values (``v``) outside it."""
+    hi = (ctx.horizon - ctx.h - 1) * ctx.r_max
+    return min(0.0, float(np.min(v))), max(hi, float(np.max(v)))
 
 
 class TVBallRule(StepRule):
@@ -19,7 +28,9 @@ class TVBallRule(StepRule):
         self.rho, self.v_min = rho, v_min  # rho: (H, d)
 
     def __call__(self, E, v, ctx):
-        return tv_constrained(E, v, self.rho[ctx.h], floor_value(self.v_min, v))
+        floor = floor_value(self.v_min, v)
+        lo, hi = step_value_range(v, ctx)
+        return tv_constrained(E, v, self.rho[ctx.h], floor, v_range=(min(lo, floor), hi))
 
 
 class DRPVI(VarianceAwareMixin, LinearEstimator):
@@ -30,6 +41,14 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
     estimates ``inf {E_mu V_{h+1} : D_TV(mu || mu0_{h,i}) <= rho_{h,i}}`` through the dual
     ``max_{alpha} E_hat_i[V]_alpha - rho_{h,i} (alpha - min_s V(s))``, maximized exactly over
     every breakpoint (no Nelder-Mead; see :func:`~r2pvi.duals.tv_constrained`).
+
+    Numerical guarantees (any data, also signed ridge weights): each ``w_h,i`` is finite and
+    lies in ``[min(V_min, m), m]`` with ``m`` the plain ridge estimate of ``E_i V_{h+1}``
+    clipped to ``[0, (H - h - 1) r_max]`` (the ball contains ``mu0``, so the robust value
+    never exceeds it); it is non-increasing in ``rho`` and tends to ``m`` as ``rho -> 0+``
+    (``rho = 0`` gives the plain estimate, :class:`~r2pvi.PEVI`'s, which is ``m`` whenever it
+    lies in the value range), and any radius past saturation (``rho = 1e16``) gives
+    ``V_min`` exactly. VA-DRPVI has the same guarantees on its weighted operator.
 
     Parameters
     ----------

@@ -2,23 +2,73 @@
 
 from __future__ import annotations
 
+import math
+import numbers
+
+import numpy as np
+
 from ..duals.constrained import kl_constrained
-from ..engine import StepRule
+from ..engine import StepContext, StepRule
 from ._params import check_radius
 from .base import LinearEstimator
+from .drpvi import step_value_range
 
-__all__ = ["DRVIL", "KLBallRule"]
+__all__ = ["DRVIL", "KLBallRule", "auto_b_min"]
+
+
+def auto_b_min(v: np.ndarray, n_samples: int) -> float | None:
+    """``b_min="auto"``: ``(max v - min v) / log K`` (None when every value is the same).
+
+    From K samples the ridge estimate of ``E[e^{-V/b}]`` cannot resolve probabilities below
+    about ``1/K``; below this ``b`` the tilt ``e^{-V/b}`` weighs the lowest sampled value more
+    than K times the highest, and the estimated objective is decided by the estimate's error
+    (negative ridge weights, the ``gamma`` shrinkage), not by the data: Ma et al.'s error
+    bound grows as ``e^{H / underline beta} / sqrt(K)``.
+
+    Examples
+    --------
+    >>> round(auto_b_min(np.array([0.0, 0.5, 2.0]), 1000), 6)
+    0.28953
+    """
+    spread = float(np.max(v) - np.min(v))
+    if not spread > 0:
+        return None
+    return spread / math.log(max(int(n_samples), 3))
 
 
 class KLBallRule(StepRule):
-    """KL ball (Ma et al. 2022, DRVI-L): per factor, ``sup_{b>0} -b log(1 + clip(
-    [Lambda^-1 sum phi (e^{-V/b} - 1)]_i, e^{-H/b} - 1, 0)) - b rho_{h,i}``."""
+    """KL ball (Ma et al. 2022, DRVI-L): per factor, ``sup_{b >= b_min} -b log(1 + clip(
+    [Lambda^-1 sum phi (e^{-V/b} - 1)]_i, e^{-m_i/b} - 1, 0)) - b rho_{h,i}``, ``m_i`` the
+    plain ridge estimate clipped to the step's value range (see
+    :func:`~r2pvi.duals.kl_constrained`)."""
 
-    def __init__(self, rho):
+    def __init__(self, rho, b_min="auto"):
         self.rho = rho  # (H, d)
+        self.b_min = b_min  # "auto", a positive float or None
 
-    def __call__(self, E, v, ctx):
-        return kl_constrained(E, v, self.rho[ctx.h], v_max=ctx.v_upper, centered=True)
+    def __call__(self, E, v, ctx: StepContext):
+        b_min = auto_b_min(v, E.n_points) if self.b_min == "auto" else self.b_min
+        return kl_constrained(E, v, self.rho[ctx.h], v_range=step_value_range(v, ctx),
+                              centered=True, b_min=b_min)
+
+
+def check_b_min(b_min):
+    """Validate ``b_min``: "auto", None or a finite positive number."""
+    if isinstance(b_min, str):
+        if b_min != "auto":
+            raise ValueError(f"b_min must be 'auto', None or a positive number, got {b_min!r}")
+        return "auto"
+    if b_min is None:
+        return None
+    if isinstance(b_min, bool) or not isinstance(b_min, numbers.Real):
+        raise TypeError(f"b_min must be 'auto', None or a positive number, got {b_min!r}")
+    b = float(b_min)
+    if not (np.isfinite(b) and b > 0):
+        raise ValueError(
+            f"b_min must be a finite number > 0 (or 'auto', or None to search b -> 0), "
+            f"got {b_min!r}"
+        )
+    return b
 
 
 class DRVIL(LinearEstimator):
@@ -27,11 +77,20 @@ class DRVIL(LinearEstimator):
     The d-DRMDP KL baseline of the paper (Ma et al. 2022): ``Q_h = clip(phi^T (theta_h +
     w_h) - Gamma_h(phi), 0, (H - h) r_max)`` where ``w_h,i`` estimates
     ``inf {E_mu V_{h+1} : D_KL(mu || mu0_{h,i}) <= rho_{h,i}}`` through the dual
-    ``sup_{b>0} -b log E_i[e^{-V/b}] - b rho_{h,i}``. As in Ma et al., the ridge regression
-    estimates ``E_i[e^{-V/b}] - 1`` (regressing ``e^{-V/b} - 1``, so the estimate shrinks
-    towards 1), clipped to ``[e^{-H r_max/b} - 1, 0]`` so that its log is defined; the 1-D
-    problem in ``b`` is solved to machine precision for all factors at once
-    (see :func:`~r2pvi.duals.kl_constrained` with ``centered=True``).
+    ``sup_{b >= b_min} -b log E_i[e^{-V/b}] - b rho_{h,i}``. As in Ma et al., the ridge
+    regression estimates ``E_i[e^{-V/b}] - 1`` (regressing ``e^{-V/b} - 1``, so the estimate
+    shrinks towards 1), clipped so that its log is defined; the 1-D problem in ``b`` is solved
+    to machine precision for all factors at once (see :func:`~r2pvi.duals.kl_constrained`
+    with ``centered=True``).
+
+    Numerical guarantees (any data, also signed ridge weights): each ``w_h,i`` is finite and
+    lies in ``[0, m]``, ``m`` the plain ridge estimate of ``E_i V_{h+1}`` clipped to
+    ``[0, (H - h - 1) r_max]`` (the ball contains ``mu0``, so the robust value never exceeds
+    it; the estimate of ``E_i[e^{-V/b}]`` is floored at ``e^{-m/b}``, Jensen's bound, instead
+    of Ma et al.'s ``e^{-H/b}``); it is non-increasing in ``rho`` and tends to ``m`` as
+    ``rho -> 0+`` (``rho = 0`` gives the plain estimate, :class:`~r2pvi.PEVI`'s, which is
+    ``m`` whenever it lies in the value range), and a radius so large that no ``b >= b_min``
+    gives a value above 0 (``rho = 1e10``) gives 0, the least value.
 
     Parameters
     ----------
@@ -47,8 +106,17 @@ class DRVIL(LinearEstimator):
     reward_weights : array (H, d), optional
         Known ``theta_h``; None estimates them by ridge regression.
     r_max : float, default 1.0
-        Reward bound: ``Q_h`` is clipped to ``[0, (H - h) r_max]``; the estimate of
-        ``E[e^{-V/b}]`` is floored at ``e^{-H r_max / b}``.
+        Reward bound: ``Q_h`` is clipped to ``[0, (H - h) r_max]``.
+    b_min : "auto", float or None, default "auto"
+        Lower end of the search over the dual variable ``b`` (Ma et al.'s regularity
+        assumption: the optimal ``b`` is at least ``underline beta > 0``), in the units of
+        the values. ``"auto"`` takes ``(max V - min V) / log K`` at every step (K samples;
+        :func:`auto_b_min`): from K samples the ridge estimate of ``E[e^{-V/b}]`` cannot
+        resolve probabilities below about ``1/K``, and at smaller ``b`` the estimated
+        objective is decided by the estimate's error. Without it, a factor with (almost) no
+        mass on the lowest values can get its plain estimate instead of a robust one (the
+        ridge estimate of ``E[e^{-V/b}]`` crosses 0 as ``b -> 0``). None searches
+        ``b -> 0`` (Ma et al.'s estimator without the assumption).
 
     Attributes
     ----------
@@ -73,16 +141,18 @@ class DRVIL(LinearEstimator):
     """
 
     def __init__(self, rho, *, beta=1.0, gamma=1.0, penalty="l1", reward_weights=None,
-                 r_max=1.0):
+                 r_max=1.0, b_min="auto"):
         self.rho = rho
         self.beta = beta
         self.gamma = gamma
         self.penalty = penalty
         self.reward_weights = reward_weights
         self.r_max = r_max
+        self.b_min = b_min
 
     def _validate_extra(self, dataset):
-        return {"rho": check_radius(self.rho, dataset.horizon, dataset.n_features)}
+        return {"rho": check_radius(self.rho, dataset.horizon, dataset.n_features),
+                "b_min": check_b_min(self.b_min)}
 
     def _make_rule(self, params):
-        return KLBallRule(params["rho"])
+        return KLBallRule(params["rho"], params["b_min"])

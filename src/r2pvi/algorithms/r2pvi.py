@@ -116,7 +116,10 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         Ridge parameter (> 0).
     penalty : {"l1", "l2", "elliptical"}, default "l1"
         "l1" is the paper's d-rectangular ``beta sum_i |phi_i| sqrt([Lambda^-1]_ii)``;
-        "l2" the authors' code's ``beta sqrt(sum_i phi_i^2 [Lambda^-1]_ii)``.
+        "l2" the authors' code's ``beta sqrt(sum_i phi_i^2 [Lambda^-1]_ii)``; "elliptical"
+        is PEVI's (non-robust) bonus ``beta ||phi||_{Lambda^-1} = beta sqrt(phi^T
+        Lambda^-1 phi)``, the norm of ``phi`` in the ellipsoid of the inverse Gram matrix
+        (it uses the off-diagonal entries too; for comparisons with PEVI).
     v_min : "data" or float, default "data"
         Source of ``min_s V_{h+1}(s)`` used by TV (``alpha = V_min + lam``) and by
         divergences that can move mass off the nominal support: "data" takes the minimum

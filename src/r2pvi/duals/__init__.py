@@ -14,6 +14,7 @@ from .fdivergence import (
 from .operators import (
     ExpectationOperator,
     FactorExpectation,
+    GramMatrixError,
     RidgeExpectation,
     TruncationCumulants,
     cholesky_gram,
@@ -34,6 +35,7 @@ __all__ = [
     "RidgeExpectation",
     "TruncationCumulants",
     "cholesky_gram",
+    "GramMatrixError",
     "chi2_regularized",
     "f_regularized",
     "kl_regularized",

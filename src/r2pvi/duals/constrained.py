@@ -39,7 +39,13 @@ def _radii(rho, d: int) -> np.ndarray:
 
 
 def tv_constrained(
-    E: ExpectationOperator, v: np.ndarray, rho, v_min: float | None = None, method: str = "auto"
+    E: ExpectationOperator,
+    v: np.ndarray,
+    rho,
+    v_min: float | None = None,
+    method: str = "auto",
+    *,
+    v_range=None,
 ) -> np.ndarray:
     """TV ball: ``max_{alpha in [V_min, V_max]} E_i[V]_alpha - rho_i (alpha - min_s [V(s)]_alpha)``.
 
@@ -54,8 +60,18 @@ def tv_constrained(
     :meth:`~r2pvi.duals.ExpectationOperator.truncation_cumulants`; ``"blockwise"`` gives the
     same maximum by the branch and bound over blocks of sorted breakpoints shared with the
     chi^2 dual (:class:`~r2pvi.duals.piecewise.BlockScan`); ``"auto"`` takes blockwise from
-    512 values on. ``rho_i = 0`` returns ``E_i(v)``; for a distribution ``rho_i >= 1`` gives
-    ``V_min``.
+    512 values on. The values are shifted by ``V_min`` first, so that ``rho_i alpha`` never
+    cancels against ``rho_i V_min``: any finite radius is exact (``rho = 1e16`` included).
+
+    Guarantees (also for ridge operators, whose weights may be negative): the ball contains
+    ``mu0_i``, so the result never exceeds the plain estimate ``E_i(v)`` (clipped to
+    ``v_range``), and it is at least ``V_min``. With ``m_i = clip(E_i(v), lo, hi)``
+    (``v_range = (lo, hi)``, unbounded when None), the result for ``rho_i > 0`` is
+    ``min(max(dual_i, max(V_min, lo)), m_i)``: non-increasing in ``rho_i`` and tending to
+    ``m_i`` as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``E_i(v)`` (the non-robust
+    estimate, equal to the limit whenever it lies in ``v_range``). A radius ``rho_i >= 1``
+    makes the ball hold every distribution, whatever ``mu0_i``: the result is then
+    ``min(V_min, m_i)``, exactly (a ridge row's dual would give ``V_min E_i(1)``).
 
     Parameters
     ----------
@@ -68,6 +84,10 @@ def tv_constrained(
         Minimum of V over the whole state space (mass can move to any state under TV); None
         takes ``min(v)``. A ``v_min`` above ``min(v)`` is clamped to ``min(v)`` (the points of
         ``v`` are states too).
+    method : {"auto", "dense", "blockwise"}
+    v_range : (float, float), optional
+        Known range ``(lo, hi)`` of V (e.g. ``[0, (H - h - 1) r_max]`` when learning): every
+        result lies in it.
 
     Returns
     -------
@@ -83,27 +103,52 @@ def tv_constrained(
     array([1.25])
     >>> tv_constrained(E, v, rho=0.0), tv_constrained(E, v, rho=1.0)
     (array([2.]), array([0.]))
+    >>> tv_constrained(E, v, rho=1e16)   # a saturated ball: exactly min V
+    array([0.])
     """
     v = np.asarray(v, dtype=float)
     rho = _radii(rho, E.n_dims)
-    if not np.any(rho > 0):
-        return E(v)
+    lo, hi = _value_range(v_range)
+    if method not in ("auto", "dense", "blockwise"):
+        raise ValueError(f"method must be 'auto', 'dense' or 'blockwise', got {method!r}")
     lowest = float(np.min(v))
     floor = lowest if v_min is None else min(float(v_min), lowest)
+    y = v - floor  # >= 0, and exactly 0 at the lowest point when floor == min(v)
+    plain = E(v)
+    if not np.any(rho > 0):
+        return plain
+    cap = np.clip(plain, lo, hi)
+    mass = E(np.ones_like(v))
     if method == "auto":
         method = "blockwise" if v.size >= 512 else "dense"
-    if method == "dense":
-        best = _tv_ball_cumulants(E, v, rho)
-    elif method == "blockwise":
-        best = tv_ball_max(E, v, rho)
-    else:
-        raise ValueError(f"method must be 'auto', 'dense' or 'blockwise', got {method!r}")
-    best += rho * floor
-    if floor < lowest:  # alpha = V_min below every value: E_i[V]_alpha = alpha E_i(1)
-        np.maximum(best, floor * E(np.ones_like(v)), out=best)
-    if np.all(rho > 0):
-        return best
-    return np.where(rho > 0, best, E(v))  # rho_i = 0: exactly the plain expectation
+    with np.errstate(over="ignore", invalid="ignore"):  # rho alpha may overflow to inf
+        if method == "dense":
+            best = _tv_ball_cumulants(E, y, rho)
+        else:
+            best = tv_ball_max(E, y, rho)
+    # alpha = V_min: E_i[y]_0 - 0 = 0 (a breakpoint already when floor == min(v))
+    np.maximum(best, 0.0, out=best)
+    best += floor * mass
+    # A radius >= 1 allows every distribution, whatever mu0: the least value, exactly (the
+    # ridge dual there is V_min E_i(1), biased by the row sum).
+    best = np.where(rho >= 1.0, floor, best)
+    lower = max(floor, lo)
+    out = np.minimum(np.maximum(best, lower), cap)
+    return np.where(rho > 0, out, plain)  # rho_i = 0: exactly the plain expectation
+
+
+def _value_range(v_range) -> tuple[float, float]:
+    """``(lo, hi)`` from ``v_range`` (None: unbounded)."""
+    if v_range is None:
+        return -np.inf, np.inf
+    try:
+        lo, hi = (float(x) for x in v_range)
+    except (TypeError, ValueError):
+        raise TypeError(f"v_range must be None or a pair (lo, hi) of numbers, got {v_range!r}"
+                        ) from None
+    if np.isnan(lo) or np.isnan(hi) or lo > hi:
+        raise ValueError(f"v_range must be a pair (lo, hi) with lo <= hi, got {v_range!r}")
+    return lo, hi
 
 
 def _factorization(E):
@@ -135,6 +180,7 @@ def kl_constrained(
     v: np.ndarray,
     rho,
     *,
+    v_range=None,
     v_max: float | None = None,
     centered: bool = False,
     b_min: float | None = None,
@@ -144,26 +190,46 @@ def kl_constrained(
     """KL ball: ``sup_{b > 0} -b log E_i[exp(-V/b)] - b rho_i``.
 
     The dual of ``inf {E_mu V : D_KL(mu || mu0_i) <= rho_i}`` (Hu & Hong 2013; used by
-    DRVI-L, Ma et al. 2022). The expectation ``u_i(b) = E_i[exp(-V/b)]`` is
-    floored at ``exp(-V_max/b)``, its value when every point has value ``V_max`` (as in
-    :func:`~r2pvi.duals.kl_regularized`), so that ``-b log u_i <= V_max``.
+    DRVI-L, Ma et al. 2022). The estimate of ``u_i(b) = E_i[exp(-V/b)]`` is floored at
+    ``exp(-m_i/b)``, ``m_i`` the plain estimate ``E_i(v)`` (clipped to ``v_range``): by
+    Jensen's inequality a distribution has ``u_i(b) >= exp(-E_i[V]/b)``, so the floor never
+    binds in exact evaluation, and ``-b log u_i - b rho_i <= m_i - b rho_i`` at every ``b``
+    for any operator. (Ma et al. floor at ``exp(-H/b)``; with ridge weights that floor lets
+    the objective reach ``H`` wherever the estimate of ``u_i`` crosses it, see below.)
 
     With ``centered=True`` the estimate is Ma et al.'s for a ridge operator, whose estimate of
     ``u_i`` can leave (0, 1]: regress ``exp(-V/b) - 1`` (the ridge estimate shrinks towards 1,
-    not 0), then clip the estimate to ``[exp(-V_max/b) - 1, 0]``, i.e.
-    ``u_i = 1 + clip(E_i(exp(-V/b) - 1), exp(-V_max/b) - 1, 0)``. For an operator whose rows
-    sum to 1 (exact evaluation) both forms are the same.
+    not 0), then clip, ``u_i = 1 + clip(E_i(exp(-V/b) - 1), exp(-m_i/b) - 1, 0)``. For an
+    operator whose rows sum to 1 (exact evaluation) both forms are the same.
+
+    **The limit b -> 0 on ridge operators.** ``E_i(exp(-V/b) - 1)`` tends to minus the
+    ridge weight of the points with ``V > 0``, which exceeds 1 whenever the row's weights on
+    the lowest values are negative (a factor with no mass at the lowest value, estimated
+    from overlapping features): the estimate of ``u_i`` then crosses 0 at a small ``b``, and
+    below the crossing the floor makes the objective ``m_i - b rho_i``, nearly the plain
+    estimate, whatever ``rho_i``. It is not the minimum of ``v`` over the factor's support
+    (that limit holds for non-negative rows only). ``b_min`` (Ma et al.'s lower bound
+    ``underline beta`` on the dual variable) excludes that region: DRVI-L sets it from the
+    data (:class:`~r2pvi.DRVIL`).
 
     The 1-D problem is solved in ``t = log b`` for all factors at once: the objective, its
     first and second derivatives on a log-spaced grid of ``b`` (one operator call for all
     factors) give each factor a bracket around its best grid point, refined by a safeguarded
     Newton iteration (bisection when a step leaves the bracket); the best value seen is
     returned. Everything is computed in the log domain, shifted by the smallest value each
-    factor can see, with ``expm1`` for large ``b``: finite and accurate for values up to
-    100 and beyond and ``b`` from 1e-9 (relative to the values) to ``V_max / rho``.
-    When ``b_min`` is None the supremum includes ``b -> 0``, whose limit for a non-negative
-    operator is the minimum of ``v`` over the support of the factor (used as a candidate).
-    ``rho_i = 0`` returns the plain expectation ``E_i(v)`` (the supremum as ``b -> inf``).
+    factor can see, with ``expm1`` for large ``b``: finite and accurate for values from 0 to
+    1e6 and beyond and ``b`` from 1e-9 (relative to the values) to ``2 (max V - min V) /
+    rho``. The grid is scaled by the values, never by a bound such as ``H r_max``.
+
+    Guarantees: with ``v_range = (lo, hi)`` (unbounded when None) and ``m_i = clip(E_i(v),
+    lo, hi)``, the result lies in ``[min(lower_i, m_i), m_i]``, ``lower_i = lo`` for a
+    ridge operator and the smallest value on the factor's support (at least ``lo``) for a
+    distribution, for ``rho_i > 0``; it is non-increasing in ``rho_i`` and tends to ``m_i``
+    as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``E_i(v)`` (the non-robust estimate,
+    equal to the limit whenever it lies in ``v_range``). For a
+    distribution, a radius ``rho_i >= log(1 / mu0_i(S_min))`` (``S_min``: where V is
+    smallest on the support) makes the ball hold the point mass there: the result is that
+    minimum, exactly.
 
     Parameters
     ----------
@@ -172,14 +238,17 @@ def kl_constrained(
         Values at the operator's points.
     rho : float or ndarray (d,)
         Radii, >= 0.
+    v_range : (float, float), optional
+        Known range ``(lo, hi)`` of V over the state space (e.g. ``[0, (H - h - 1) r_max]``
+        when learning): every result lies in it.
     v_max : float, optional
-        Upper bound on V that floors the estimate (``H`` in the papers); None takes ``max(v)``.
+        Shorthand for ``v_range=(-inf, v_max)``.
     centered : bool, default False
         Ma et al.'s centered regression of ``exp(-V/b) - 1`` with the clip to
-        ``[exp(-V_max/b) - 1, 0]`` (for ridge operators).
+        ``[exp(-m_i/b) - 1, 0]`` (for ridge operators).
     b_min : float, optional
-        Lower end of the search over ``b`` (Ma et al.'s ``underline beta``); None searches
-        ``b -> 0`` too.
+        Lower end of the search over ``b`` (Ma et al.'s ``underline beta``, in the units of
+        V); None searches ``b -> 0`` too.
     xtol, max_iter
         Tolerance on ``t = log b`` and the iteration cap of the Newton refinement.
 
@@ -203,28 +272,36 @@ def kl_constrained(
     v = np.asarray(v, dtype=float)
     d = E.n_dims
     rho = _radii(rho, d)
+    if v_range is None and v_max is not None:
+        v_range = (-np.inf, v_max)
+    lo, hi = _value_range(v_range)
     plain = E(v)
     dims = np.flatnonzero(rho > 0)
     if dims.size == 0:
         return plain
+    cap = np.clip(plain, lo, hi)
     if b_min is not None and not (np.isfinite(b_min) and b_min > 0):
         raise ValueError(f"b_min must be a positive number or None, got {b_min!r}")
-    prob = _KLProblem(E, v, rho, dims, v_max, centered)
+    prob = _KLProblem(E, v, rho, dims, cap, lo, centered)
     best = prob.solve(b_min, xtol, max_iter)
-    out = plain.copy()
-    out[dims] = best
+    out = plain.copy()  # rho_i = 0: exactly the plain expectation
+    # Jensen's floor keeps every objective value <= cap - b rho; the min only absorbs rounding.
+    # The lower end: every expectation of V is at least the least value (for a distribution,
+    # the minimum on its support, which a saturated ball attains exactly).
+    out[dims] = np.minimum(np.maximum(best, prob.lower), cap[dims])
+    if prob.saturated is not None:  # the point mass at the minimum is in the ball: exactly it
+        out[dims] = np.where(prob.saturated, np.minimum(prob.lower, cap[dims]), out[dims])
     return out
 
 
 class _KLProblem:
     """The KL-ball dual of the factors ``dims``: evaluation in log b on a grid and per factor."""
 
-    def __init__(self, E, v, rho, dims, v_max, centered):
+    def __init__(self, E, v, rho, dims, cap, lo, centered):
         self.E, self.v, self.dims = E, v, dims
         self.rho = rho[dims]
-        self.top = float(np.max(v)) if v_max is None else float(v_max)
         self.centered = bool(centered)
-        self.scale = max(float(np.max(np.abs(v))), abs(self.top)) or 1.0
+        self.scale = float(np.max(np.abs(v))) or 1.0
         lowest = float(np.min(v))
         # Smallest value each factor can see: the shift of the log-domain computation and,
         # for non-negative operators, the limit of the objective as b -> 0.
@@ -244,7 +321,20 @@ class _KLProblem:
         self.c = 1.0 - row_sums if self.centered and not E.nonnegative else np.zeros(dims.size)
         plain_base = E.nonnegative or self.centered
         self.base = np.ones(dims.size) if plain_base else row_sums
-        spread = max(self.top - min(0.0, lowest), 1e-12 * self.scale)
+        # Jensen's floor of log u: -m_i / b, m_i the plain estimate (per unit of row mass).
+        self.cap = cap[dims] / self.norm
+        if E.nonnegative:
+            self.lower = np.maximum(self.shift, lo)
+            # rho_i >= log(1 / mu0_i(argmin)): saturated (rounding could put a grid value an
+            # ulp above the minimum otherwise)
+            at_min = np.where(rows > 0, v, np.inf) == self.shift[:, None]
+            p_min = np.where(at_min, rows, 0.0).sum(axis=1) / self.norm
+            with np.errstate(divide="ignore"):
+                self.saturated = self.rho >= -np.log(p_min)
+        else:
+            self.lower = np.full(dims.size, lo)
+            self.saturated = None
+        spread = max(float(np.max(v)) - min(0.0, lowest), 1e-12 * self.scale)
         with np.errstate(divide="ignore", over="ignore"):
             self.b_hi = np.minimum(2.0 * spread / self.rho, _B_CAP * self.scale)
 
@@ -263,7 +353,7 @@ class _KLProblem:
         hi = np.where(f1 > 0, tgrid[np.minimum(k + 1, n_grid - 1)], t)
         ftol = _FTOL * self.scale
         for _ in range(max_iter):
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 newton = t - f1 / f2
                 gain = 0.5 * f1 * f1 / np.abs(f2)
             go = (hi - lo > xtol * (1.0 + np.abs(t))) & ~((f2 < 0) & (gain <= ftol))
@@ -279,7 +369,7 @@ class _KLProblem:
             lo[idx] = np.where(up, step[idx], lo[idx])
             hi[idx] = np.where(up, hi[idx], step[idx])
         if b_min is None and self.E.nonnegative:
-            np.maximum(best, np.minimum(self.shift, self.top), out=best)  # b -> 0
+            np.maximum(best, np.minimum(self.shift, self.cap), out=best)  # b -> 0
         return best
 
     # ------------------------------------------------------------------ moments
@@ -300,7 +390,7 @@ class _KLProblem:
             mom = self.E(y)[self.dims]
             mom /= self.norm[:, None]
             res = self._plain(mom[:, :j], mom[:, j:2 * j], mom[:, 2 * j:], b[None, :],
-                              self.base[:, None], self.rho[:, None])
+                              self.base[:, None], self.rho[:, None], self.cap[:, None])
             for o, val in zip(out, res, strict=True):
                 o[:, plain] = val
         if (~plain).any():
@@ -327,7 +417,7 @@ class _KLProblem:
                 x2 = np.einsum("in,ijn->ij", self.rows, z)
                 x0, x1, x2 = (x / self.norm[:, None] for x in (x0, x1, x2))
             res = self._shifted(x0, x1, x2, self.shift[:, None], b[None, :], self.c[:, None],
-                                self.rho[:, None])
+                                self.rho[:, None], self.cap[:, None])
             for o, val in zip(out, res, strict=True):
                 o[:, ~plain] = val
         return out
@@ -359,10 +449,11 @@ class _KLProblem:
                 np.multiply(z[1], y, out=z[2])
             mom = self._diagonal(z.reshape(3 * m, n), rows) / self.norm[rows]
             if is_plain:
-                res = self._plain(mom[0], mom[1], mom[2], bb, self.base[rows], self.rho[rows])
+                res = self._plain(mom[0], mom[1], mom[2], bb, self.base[rows], self.rho[rows],
+                                  self.cap[rows])
             else:
                 res = self._shifted(mom[0], mom[1], mom[2], self.shift[rows], bb, self.c[rows],
-                                    self.rho[rows])
+                                    self.rho[rows], self.cap[rows])
             g[sel], d1[sel], d2[sel] = res
         return g, d1, d2
 
@@ -382,7 +473,7 @@ class _KLProblem:
         return np.stack([np.einsum("jn,jn->j", w, zs[k * m:(k + 1) * m]) for k in range(3)])
 
     # ------------------------------------------------------------------ objective
-    def _plain(self, e1, p1, p2, b, base, rho):
+    def _plain(self, e1, p1, p2, b, base, rho, cap):
         """From ``D = E[exp(-V/b) - 1]``, ``P1 = E[V exp(-V/b)]``, ``P2 = E[V^2 exp(-V/b)]``
         (accurate for large b): ``u = base + D`` with ``base = 1`` (centered, or normalized
         distributions) or ``E(1)``."""
@@ -392,9 +483,9 @@ class _KLProblem:
             u = 1.0 + w
             t1 = p1 / (b * u)
             b3g2 = -(p2 * u - p1 * p1) / (u * u)
-        return self._finish(log_u, t1, b3g2, b, rho)
+        return self._finish(log_u, t1, b3g2, b, rho, cap)
 
-    def _shifted(self, x0, x1, x2, m, b, c, rho):
+    def _shifted(self, x0, x1, x2, m, b, c, rho, cap):
         """From the moments of ``y = V - m``: ``X_k = E[y^k exp(-y/b)]`` (accurate for small b):
         ``u = exp(-m/b) X_0 + c``."""
         with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
@@ -417,13 +508,14 @@ class _KLProblem:
             mean = m + q
             t1 = frac * mean / b
             b3g2 = -frac * (var + (1.0 - frac) * mean * mean)
-        return self._finish(log_u, t1, b3g2, b, rho)
+        return self._finish(log_u, t1, b3g2, b, rho, cap)
 
-    def _finish(self, log_u, t1, b3g2, b, rho):
-        """Clip ``log u`` to ``[-V_max/b, 0 if centered]`` and return ``G, dG/dt, d2G/dt2`` of
-        ``G(t) = -b (log u + rho)``, ``b = e^t``; ``t1 = b u'/u`` and ``b3g2 = b^3 g''(b)``."""
+    def _finish(self, log_u, t1, b3g2, b, rho, cap):
+        """Clip ``log u`` to ``[-m/b, 0 if centered]`` (``m = cap``, Jensen's floor) and return
+        ``G, dG/dt, d2G/dt2`` of ``G(t) = -b (log u + rho)``, ``b = e^t``; ``t1 = b u'/u`` and
+        ``b3g2 = b^3 g''(b)``."""
         b = np.broadcast_to(b, log_u.shape)
-        log_lo = -self.top / b
+        log_lo = -cap / b
         low = ~(log_u >= log_lo)  # NaN/-inf too
         log_u = np.where(low, log_lo, log_u)
         t1 = np.where(low, -log_lo, t1)

@@ -95,6 +95,13 @@ class FDivergence:
     def __hash__(self):
         return hash(self.name)
 
+    def __reduce__(self):
+        # Built-in divergences (params set) pickle by their parameters, not their functions
+        # (lambdas and closures cannot be pickled); custom ones pickle field by field.
+        if self.params:
+            return (get_divergence, (dict(self.params),))
+        return super().__reduce__()
+
     def divergence(self, mu, mu0) -> float:
         """``D_f(mu || mu0)`` for finite distributions (``+inf`` when not absolutely continuous,
         unless ``f`` grows linearly, in which case mass off the support costs ``domain_max``)."""

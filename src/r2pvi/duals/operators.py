@@ -218,7 +218,20 @@ def cholesky_gram(phi: np.ndarray, gamma: float, weights: np.ndarray | None = No
     xw = phi if weights is None else phi * weights[:, None]
     gram = xw.T @ phi
     gram[np.diag_indices_from(gram)] += gamma
-    return np.linalg.cholesky(gram)
+    try:
+        return np.linalg.cholesky(gram)
+    except np.linalg.LinAlgError:
+        raise GramMatrixError(
+            f"the Gram matrix Lambda = Phi^T Phi + gamma I is not numerically positive "
+            f"definite: gamma = {gamma!r} is too small for these collinear (rank-deficient) "
+            "features; use a larger gamma (the default is 1.0)"
+        ) from None
+
+
+class GramMatrixError(np.linalg.LinAlgError):
+    """The ridge Gram matrix has no Cholesky factor: gamma is too small for the features.
+
+    A ``LinAlgError``, hence a ``ValueError``."""
 
 
 class RidgeExpectation(ExpectationOperator):

@@ -13,6 +13,7 @@ imported only when used.
 """
 
 from ._dataset import Trajectories
+from .collect import EpsilonGreedy, UniformPolicy, collect_episodes
 from .finite import FiniteLinearMDP
 from .hard_instance import HardInstance
 from .policies import policy_table
@@ -29,4 +30,7 @@ __all__ = [
     "EXERCISE",
     "Trajectories",
     "policy_table",
+    "collect_episodes",
+    "EpsilonGreedy",
+    "UniformPolicy",
 ]

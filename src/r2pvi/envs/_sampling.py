@@ -14,6 +14,8 @@ def as_generator(seed) -> np.random.Generator:
     (returned as is, so that a caller's stream continues)."""
     if isinstance(seed, bool):
         raise TypeError("seed must be None, an integer, a SeedSequence or a numpy Generator")
+    if isinstance(seed, numbers.Integral) and seed < 0:
+        raise ValueError(f"seed must be >= 0 (NumPy seeds are non-negative), got {seed}")
     if seed is None or isinstance(seed, numbers.Integral | np.random.SeedSequence):
         return np.random.default_rng(seed)
     if isinstance(seed, np.random.Generator):

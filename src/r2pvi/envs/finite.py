@@ -316,15 +316,6 @@ class FiniteLinearMDP:
         )
 
     # ------------------------------------------------------------------ ecosystem
-    def to_gymnasium(self):
-        """This model as a Gymnasium environment (needs the ``gym`` extra).
-
-        See :mod:`r2pvi.envs.gym`.
-        """
-        from .gym import as_gymnasium_env
-
-        return as_gymnasium_env(self)
-
     def init_kwargs(self) -> dict:
         """JSON-friendly keyword arguments that rebuild this environment (Gymnasium specs)."""
         kwargs = {

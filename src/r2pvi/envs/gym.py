@@ -9,7 +9,8 @@ Importing this module registers the ids
 
 so ``gymnasium.make("r2pvi/SimulatedLinearMDP-v0")`` works after ``import r2pvi.envs.gym``
 (or in one line: ``gymnasium.make("r2pvi.envs.gym:r2pvi/SimulatedLinearMDP-v0")``).
-``env.to_gymnasium()`` wraps an existing r2pvi environment.
+``as_gymnasium_env(env)`` wraps an existing r2pvi environment (the adapters import the
+environments; the environments never import the adapters).
 
 Observations are state indices (``Discrete(S)``) for the finite models and the price
 (``Box(low, high, (1,))`` over the reachable prices) for the put option; actions are
@@ -89,7 +90,7 @@ class FiniteLinearMDPEnv(_Base):
     Examples
     --------
     >>> from r2pvi.envs import SimulatedLinearMDP
-    >>> env = SimulatedLinearMDP().to_gymnasium()              # doctest: +SKIP
+    >>> env = as_gymnasium_env(SimulatedLinearMDP())           # doctest: +SKIP
     >>> obs, info = env.reset(seed=0)                          # doctest: +SKIP
     >>> obs, info["step"], info["phi"].shape                   # doctest: +SKIP
     (0, 0, (16, 4))
@@ -199,14 +200,27 @@ class AmericanPutOptionEnv(_Base):
         return self._obs(), 0.0, False, truncated, self._info()
 
 
-def greedy_action(estimator, info) -> int:
+def greedy_action(estimator, info):
     """The action of a fitted estimator at the state described by a step's ``info``.
 
-    Greedy on ``estimator.q_values(info["phi"][None], info["step"], known)`` with the known
-    action values of ``info`` (ties go to the lowest action index).
+    Greedy on ``estimator.q_values(info["phi"], info["step"], known)`` with the known
+    action values of ``info`` (ties go to the lowest action index). A single environment's
+    ``info`` gives an ``int``; a vector environment's (``phi (n, A, d)``, ``step (n,)``)
+    gives an ``(n,)`` array of actions, one per sub-environment.
     """
-    known = np.where(info["known"], info["known_values"], np.nan)[None]
-    return int(estimator.act(info["phi"][None], info["step"], known)[0])
+    phi = np.asarray(info["phi"], dtype=float)
+    known = np.where(info["known"], info["known_values"], np.nan)
+    if phi.ndim == 2:
+        return int(estimator.act(phi[None], int(info["step"]), known[None])[0])
+    steps = np.broadcast_to(np.asarray(info["step"]), phi.shape[:1])
+    horizon = getattr(estimator, "horizon_", None)
+    out = np.zeros(phi.shape[0], dtype=np.int64)
+    for h in np.unique(steps):
+        rows = steps == h
+        if horizon is not None and h >= horizon:
+            continue  # a finished sub-environment (autoreset pending): any action
+        out[rows] = estimator.act(phi[rows], int(h), known[rows])
+    return out
 
 
 def _as_action(action, n_actions: int) -> int:

@@ -27,7 +27,7 @@ from ..data import OfflineDataset
 from .finite import FiniteLinearMDP
 from .put_option import EXERCISE, AmericanPutOption
 
-__all__ = ["to_minari", "from_minari"]
+__all__ = ["to_minari", "from_minari", "episodes_to_minari"]
 
 MINARI_FORMAT_TAG = "r2pvi.envs.minari/1"
 
@@ -184,8 +184,56 @@ def _episode_buffers(env, states, actions, rewards, next_states, EpisodeBuffer):
         )
 
 
-def from_minari(source, env=None) -> OfflineDataset:
+def episodes_to_minari(episodes, dataset_id: str, env, *, root=None, **metadata):
+    """Write episodes (e.g. from :func:`r2pvi.envs.collect_episodes`) as a Minari dataset.
+
+    Uses Minari's own ``create_dataset_from_buffers``; ``env`` (a Gymnasium environment or
+    id) records the spaces and the spec. ``root`` sets ``MINARI_DATASETS_PATH`` for the
+    call; ``metadata`` goes to Minari (``algorithm_name``, ``author``, ...).
+
+    Returns
+    -------
+    minari.MinariDataset
+    """
+    _require_minari()
+    from minari import create_dataset_from_buffers
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+
+    from ..episodes import as_episode_list
+
+    buffers = []
+    for k, ep in enumerate(as_episode_list(episodes)):
+        buffers.append(EpisodeBuffer(
+            id=k,
+            seed=getattr(ep, "seed", None),
+            observations=np.asarray(ep.observations),
+            actions=np.asarray(ep.actions),
+            rewards=[float(r) for r in ep.rewards],
+            terminations=[bool(t) for t in ep.terminations],
+            truncations=[bool(t) for t in ep.truncations],
+            infos={},
+        ))
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    if root is not None:
+        os.environ["MINARI_DATASETS_PATH"] = str(Path(os.fspath(root)).resolve())
+    try:
+        return create_dataset_from_buffers(dataset_id, buffers, env=env, **metadata)
+    finally:
+        if root is not None:
+            if old is None:
+                os.environ.pop("MINARI_DATASETS_PATH", None)
+            else:
+                os.environ["MINARI_DATASETS_PATH"] = old
+
+
+def from_minari(source, env=None, *, feature_map=None, n_actions=None, horizon=None,
+                reward_offset=None) -> OfflineDataset:
     """Read a Minari dataset into an :class:`~r2pvi.OfflineDataset`.
+
+    Any Minari dataset with discrete actions (one written by Minari's own
+    ``create_dataset_from_buffers`` or ``DataCollector`` from any Gymnasium environment) is
+    read through a ``feature_map`` on its observations; datasets of r2pvi's environments
+    (written by :func:`to_minari`) are read through the environment's own features.
 
     Parameters
     ----------
@@ -193,8 +241,18 @@ def from_minari(source, env=None) -> OfflineDataset:
         A loaded dataset, a directory (the dataset's ``data`` directory or its parent) or a
         local dataset id (never downloaded).
     env : FiniteLinearMDP or AmericanPutOption, optional
-        The environment whose features and known values build the dataset; None recovers
-        it from the dataset's Gymnasium spec (datasets written by :func:`to_minari`).
+        The r2pvi environment whose features and known values build the dataset; None
+        recovers it from the dataset's Gymnasium spec (datasets written by
+        :func:`to_minari`). Not used with ``feature_map``.
+    feature_map : callable or fitted transformer, optional
+        Build the dataset with :meth:`OfflineDataset.from_episodes` on the episodes'
+        observations: ``feature_map(observations, actions) -> (n, d)`` or a fitted
+        observation transformer (crossed with the actions).
+    n_actions : int, optional
+        With ``feature_map``: the number of actions (default: the dataset's Discrete
+        action space).
+    horizon, reward_offset
+        With ``feature_map``: as in :meth:`OfflineDataset.from_episodes`.
 
     Returns
     -------
@@ -221,10 +279,25 @@ def from_minari(source, env=None) -> OfflineDataset:
         raise TypeError(
             f"source must be a minari.MinariDataset, a dataset id or a path, got {source!r}"
         )
+    if feature_map is not None:
+        if n_actions is None:
+            space = md.spec.action_space
+            if not hasattr(space, "n"):
+                raise ValueError(
+                    f"the dataset's action space {space} is not Discrete: r2pvi needs "
+                    "discrete actions (pass n_actions= if the actions are indices)"
+                )
+            n_actions = int(space.n)
+        return OfflineDataset.from_episodes(md, feature_map, n_actions, horizon,
+                                            reward_offset=reward_offset)
     if env is None:
-        if md.spec.env_spec is None:
+        env_spec = md.spec.env_spec
+        if env_spec is None or not str(env_spec.id).startswith("r2pvi/"):
+            name = "no environment" if env_spec is None else f"environment {env_spec.id!r}"
             raise ValueError(
-                "the Minari dataset records no environment spec: pass env= (the r2pvi "
+                f"the Minari dataset records {name}, not an r2pvi environment: pass "
+                "feature_map= (e.g. r2pvi.features.cross_actions(NormalizedRBF().fit(obs), "
+                "n_actions)) to build features from its observations, or env= (the r2pvi "
                 "environment the data come from)"
             )
         from . import gym as _gym  # noqa: F401  (registers the ids)

@@ -206,7 +206,9 @@ class AmericanPutOption:
     def _check_estimator(self, est) -> None:
         horizon = getattr(est, "horizon_", None)
         if horizon is None:
-            raise ValueError(
+            from .._compat import not_fitted_error
+
+            raise not_fitted_error()(
                 f"the {type(est).__name__} is not fitted: call fit(env.collect(...)) first"
             )
         if horizon != self.H or est.n_features_in_ != self.d:
@@ -288,12 +290,6 @@ class AmericanPutOption:
         )
 
     # ------------------------------------------------------------------ ecosystem
-    def to_gymnasium(self):
-        """This option as a Gymnasium environment (needs the ``gym`` extra)."""
-        from .gym import as_gymnasium_env
-
-        return as_gymnasium_env(self)
-
     def init_kwargs(self) -> dict:
         """JSON-friendly keyword arguments that rebuild this environment."""
         return {

@@ -3,7 +3,8 @@
 Finite linear MDPs are evaluated by dynamic programming that reuses the duals of
 :mod:`r2pvi.duals` with the true factor distributions (``FactorExpectation(mu_h)``); the
 American put option on its binomial lattice, integrated exactly over the initial price.
-Monte Carlo rollouts are here too, to check the exact numbers.
+Monte Carlo rollouts are here too, to check the exact numbers, and Monte Carlo evaluation of
+any policy in any Gymnasium environment (:func:`evaluate_policy`).
 """
 
 from .dynamic_programming import (
@@ -15,6 +16,7 @@ from .dynamic_programming import (
 )
 from .lattice import option_value
 from .returns import expected_return, monte_carlo_return
+from .rollouts import episode_returns, evaluate_policy
 from .suboptimality import suboptimality
 
 __all__ = [
@@ -27,4 +29,6 @@ __all__ = [
     "greedy_policy",
     "suboptimality",
     "option_value",
+    "evaluate_policy",
+    "episode_returns",
 ]

@@ -14,7 +14,7 @@ policy switches at step ``h``. Between those points and the payoff kinks
 ``s0 = K / c_{h,u}``, ``V_0(s0)`` is linear in ``s0``; the expectation over a uniform
 initial price is therefore a sum of trapezoids, exact once the switch prices are known.
 They are located per step on a price grid (``price_resolution``) and refined by bisection
-to ``~1e-12`` relative; only two switches closer together than the grid spacing could be
+to ``~1e-14`` relative; only two switches closer together than the grid spacing could be
 missed.
 """
 
@@ -37,20 +37,23 @@ def _exercise_probability(env: AmericanPutOption, policy, h: int, prices: np.nda
     return env.actions(policy, h, flat).astype(float).reshape(prices.shape)
 
 
-def lattice_values(env: AmericanPutOption, s0, exercise) -> np.ndarray:
+def lattice_values(env: AmericanPutOption, s0, exercise, price_up=None) -> np.ndarray:
     """``V_0`` at initial prices ``s0 (n,)`` for exercise probabilities given per node.
 
     ``exercise[h]`` is an ``(n, h + 1)`` array (node ``u`` = number of rises); the
-    recursion is vectorized over the n initial prices.
+    recursion is vectorized over the n initial prices. ``price_up`` (a sequence of
+    probabilities of a price rise) evaluates the same decisions under each of them at once
+    and returns ``(len(price_up), n)``; None uses ``env.p0`` and returns ``(n,)``.
     """
     s0 = np.asarray(s0, dtype=float).reshape(-1)
-    value = np.zeros((s0.size, env.H + 1))
+    p = np.asarray([env.p0] if price_up is None else price_up, dtype=float)[:, None, None]
+    value = np.zeros((p.shape[0], s0.size, env.H + 1))
     for h in range(env.H - 1, -1, -1):
-        cont = env.p0 * value[:, 1 : h + 2] + (1.0 - env.p0) * value[:, : h + 1]
+        cont = p * value[:, :, 1 : h + 2] + (1.0 - p) * value[:, :, : h + 1]
         pay = np.maximum(0.0, env.strike - env.lattice_prices(s0, h))
         e = exercise[h]
         value = e * pay + (1.0 - e) * cont
-    return value[:, 0]
+    return value[0, :, 0] if price_up is None else value[:, :, 0]
 
 
 def _decisions(env, policy, s0: np.ndarray) -> list[np.ndarray]:
@@ -59,10 +62,14 @@ def _decisions(env, policy, s0: np.ndarray) -> list[np.ndarray]:
 
 
 def switch_prices(env: AmericanPutOption, policy, h: int, low: float, high: float,
-                  price_resolution: float = 0.01, max_bisections: int = 60) -> np.ndarray:
+                  price_resolution: float = 0.01, max_bisections: int = 60,
+                  subdivisions: int = 32) -> np.ndarray:
     """Prices in ``(low, high)`` where the policy's decision at step ``h`` changes.
 
-    Found on a grid of spacing ``price_resolution`` and refined by vectorized bisection.
+    Found on a grid of spacing ``price_resolution`` and refined, all brackets at once, by
+    splitting each bracket into ``subdivisions + 1`` parts per policy call (a bisection when
+    ``subdivisions = 1``) until it is ``1e-14`` relative wide (machine precision for prices
+    near 100); ``max_bisections`` bounds the work in halvings, whatever ``subdivisions``.
     """
     n = int(np.ceil((high - low) / price_resolution)) + 1
     grid = np.linspace(low, high, max(n, 2))
@@ -72,18 +79,27 @@ def switch_prices(env: AmericanPutOption, policy, h: int, low: float, high: floa
         return np.empty(0)
     a, b = grid[where].copy(), grid[where + 1].copy()
     da = dec[where]
-    for _ in range(max_bisections):
-        if np.all(b - a <= 1e-12 * np.maximum(1.0, np.abs(b))):
+    frac = np.arange(1, subdivisions + 1) / (subdivisions + 1.0)
+    halvings = 0.0
+    while halvings < max_bisections:
+        if np.all(b - a <= 1e-14 * np.maximum(1.0, np.abs(b))):
             break
-        mid = 0.5 * (a + b)
-        dm = _exercise_probability(env, policy, h, mid)
-        left = dm != da  # the switch lies in [a, mid]
-        b = np.where(left, mid, b)
-        a = np.where(left, a, mid)
+        points = a[:, None] + (b - a)[:, None] * frac[None, :]  # (brackets, subdivisions)
+        dp = _exercise_probability(env, policy, h, points)
+        changed = dp != da[:, None]
+        # the first point past the switch (the right end when none of them is)
+        first = np.where(changed.any(axis=1), changed.argmax(axis=1), subdivisions)
+        rows = np.arange(a.size)
+        right = np.where(first < subdivisions, points[rows, np.minimum(first, subdivisions - 1)],
+                         b)
+        left = np.where(first > 0, points[rows, np.maximum(first - 1, 0)], a)
+        a, b = left, right
+        halvings += np.log2(subdivisions + 1.0)
     return 0.5 * (a + b)
 
 
-def option_value(env: AmericanPutOption, policy, s0=None, *, price_resolution: float = 0.01):
+def option_value(env: AmericanPutOption, policy, s0=None, *, price_resolution: float = 0.01,
+                 price_up=None):
     """Exact expected return of ``policy`` in the put option ``env``.
 
     Parameters
@@ -97,10 +113,16 @@ def option_value(env: AmericanPutOption, policy, s0=None, *, price_resolution: f
         integrated exactly.
     price_resolution : float, default 0.01
         Spacing of the price grid that brackets the policy's switch prices.
+    price_up : sequence of float, optional
+        Evaluate the policy in ``env.perturbed(p)`` for every ``p`` at once and return an
+        array with one value per ``p`` (a leading axis when ``s0`` is an array). The
+        policy's decisions and switch prices do not depend on the probability of a price
+        rise, so they are located once: much faster than one call per ``p``, and the same
+        numbers.
 
     Returns
     -------
-    float (or ndarray for an array ``s0``)
+    float (or ndarray for an array ``s0`` or a ``price_up`` sequence)
 
     Examples
     --------
@@ -112,24 +134,36 @@ def option_value(env: AmericanPutOption, policy, s0=None, *, price_resolution: f
     >>> hold_then_exercise = lambda h, prices: (h == 1) & (prices < 100)
     >>> round(float(option_value(env, hold_then_exercise)), 10)   # closed form: 1.450080032
     1.450080032
+    >>> option_value(env, hold_then_exercise, price_up=[0.5, 1.0]).round(6).tolist()
+    [1.45008, 0.471078]
     """
     if not isinstance(env, AmericanPutOption):
         raise TypeError(f"env must be an AmericanPutOption, got {type(env).__name__}")
     price_resolution = check_scalar(price_resolution, "price_resolution", low=0.0,
                                     low_inclusive=False)
+    if price_up is not None:
+        price_up = np.asarray(price_up, dtype=float)
+        if price_up.ndim != 1 or price_up.size == 0:
+            raise ValueError("price_up must be a non-empty 1-D sequence of probabilities")
+        for p in price_up:
+            check_scalar(p, "price_up", low=0.0, high=1.0)
     if s0 is not None or env.s0 is not None:
         start = np.asarray(env.s0 if s0 is None else s0, dtype=float)
         if not np.all(np.isfinite(start)) or np.any(start <= 0):
             raise ValueError("s0 must be positive prices")
-        values = lattice_values(env, start.reshape(-1), _decisions(env, policy, start.reshape(-1)))
-        return float(values[0]) if start.ndim == 0 else values.reshape(start.shape)
+        flat = start.reshape(-1)
+        values = lattice_values(env, flat, _decisions(env, policy, flat), price_up)
+        if price_up is None:
+            return float(values[0]) if start.ndim == 0 else values.reshape(start.shape)
+        return values[:, 0] if start.ndim == 0 else values.reshape((-1, *start.shape))
     lo, hi = env.s0_range
     cuts = decision_cuts(env, policy, price_resolution)
     left, right = cuts[:-1], cuts[1:]
     exercise = _decisions(env, policy, 0.5 * (left + right))  # constant on each piece
-    v_left = lattice_values(env, left, exercise)
-    v_right = lattice_values(env, right, exercise)
-    return float(np.sum((right - left) * (v_left + v_right)) / (2.0 * (hi - lo)))
+    v_left = lattice_values(env, left, exercise, price_up)
+    v_right = lattice_values(env, right, exercise, price_up)
+    means = np.sum((right - left) * (v_left + v_right), axis=-1) / (2.0 * (hi - lo))
+    return float(means) if price_up is None else means
 
 
 def decision_cuts(env: AmericanPutOption, policy, price_resolution: float = 0.01) -> np.ndarray:

@@ -41,6 +41,12 @@ def expected_return(env, policy) -> float:
     >>> round(expected_return(env, best), 6), round(expected_return(env.perturbed(0.5), best), 6)
     (1.62425, 1.124875)
     """
+    if policy is None:
+        raise TypeError(
+            "expected_return needs a policy (an estimator, an action table, a callable or a "
+            "name such as 'uniform'); for the optimal value use "
+            "r2pvi.evaluation.nominal_values(env)"
+        )
     if isinstance(env, AmericanPutOption):
         return float(option_value(env, policy))
     if isinstance(env, FiniteLinearMDP):
@@ -55,7 +61,8 @@ def expected_return(env, policy) -> float:
 def monte_carlo_return(env, policy, n_episodes: int = 10_000, seed=None) -> tuple[float, float]:
     """Monte Carlo estimate of the expected return: ``(mean, standard error)``.
 
-    Rollouts are vectorized over episodes (``env.simulate``) and seeded.
+    Rollouts are vectorized over episodes (``env.simulate``) and seeded. ``n_episodes``
+    must be at least 2 (the standard error needs two episodes).
 
     Examples
     --------
@@ -69,7 +76,13 @@ def monte_carlo_return(env, policy, n_episodes: int = 10_000, seed=None) -> tupl
         raise TypeError(
             f"env must be a FiniteLinearMDP or an AmericanPutOption, got {type(env).__name__}"
         )
+    if policy is None:
+        raise TypeError("monte_carlo_return needs a policy, got None")
     n = check_count(n_episodes, "n_episodes")
+    if n < 2:
+        raise ValueError(
+            f"n_episodes must be >= 2 (the standard error needs two episodes), got {n}"
+        )
     returns = env.simulate(n, policy, seed).returns
-    se = float(returns.std(ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
+    se = float(returns.std(ddof=1) / np.sqrt(n))
     return float(returns.mean()), se

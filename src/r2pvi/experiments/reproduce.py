@@ -6,7 +6,7 @@ import sys
 import time
 from pathlib import Path
 
-from .config import merge_settings
+from .config import check_settings, merge_settings
 from .figures import FIGURES
 from .results import write_results
 from .runner import run_tasks
@@ -31,7 +31,7 @@ def reproduce_figure(name: str, out_dir, *, toml=None, overrides=None, seed: int
         raise ValueError(f"unknown figure {name!r}; choose from {', '.join(FIGURES)} or 'all'")
     fig = FIGURES[name]
     stream = stream or sys.stdout
-    settings = merge_settings(name, fig.defaults, toml, overrides)
+    settings = check_settings(name, merge_settings(name, fig.defaults, toml, overrides))
     tasks = fig.tasks(settings)
     if fig.serial and backend != "serial":
         print(f"[{name}] timings run serially in one process (ignoring the {backend} backend)",
@@ -43,7 +43,8 @@ def reproduce_figure(name: str, out_dir, *, toml=None, overrides=None, seed: int
     elapsed = time.perf_counter() - t0
     config = {"settings": settings, "seed": seed, "backend": backend, "jobs": jobs,
               "claim": fig.claim}
-    paths = write_results(rows, out_dir, name, config)
+    paths = write_results(rows, out_dir, name, config, quantity=fig.quantity,
+                          unit=fig.unit)
     if plot:
         from .plotting import save_figure
 

@@ -117,7 +117,9 @@ def _inverse_diagonal(estimator, H: int, d: int) -> np.ndarray:
     inv = getattr(estimator, "gram_inv_diag_", None)
     if inv is None:
         if callable(getattr(estimator, "fit", None)):
-            raise RuntimeError(
+            from .._compat import not_fitted_error
+
+            raise not_fitted_error()(
                 f"this {type(estimator).__name__} is not fitted yet; call fit(dataset) first"
             )
         inv = estimator

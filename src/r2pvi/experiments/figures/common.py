@@ -12,7 +12,8 @@ from ..plotting import line_panels
 from ..results import summarize
 from ..runner import Task
 
-__all__ = ["Figure", "make_estimator", "evaluate", "series_panels", "ALGORITHM_KINDS"]
+__all__ = ["Figure", "make_estimator", "evaluate", "series_panels", "spread_note",
+           "ALGORITHM_KINDS"]
 
 
 @dataclass
@@ -21,6 +22,7 @@ class Figure:
 
     ``tasks(settings) -> list[Task]``; ``plot(rows, settings) -> matplotlib figure``;
     ``table(rows, settings) -> str``. ``serial`` figures (timings) always run in one process.
+    ``quantity`` and ``unit`` say what the rows' ``value`` column holds (written to the CSV).
     """
 
     name: str
@@ -31,6 +33,8 @@ class Figure:
     table: Callable
     serial: bool = False
     notes: list[str] = field(default_factory=list)
+    quantity: str = "average return"
+    unit: str = "return"
 
 
 ALGORITHM_KINDS = ("PEVI", "R2PVI", "DRPVI", "DRVI-L", "VA-DRPVI", "VA-R2PVI-TV")
@@ -70,7 +74,11 @@ def evaluate(env, policy, evaluation: str, test_episodes: int, rng) -> float:
 
 
 def series_panels(rows, panel_key, series_key, x_key, panel_fmt="{}", series_fmt="{}"):
-    """Group rows into ``[(panel title, {series: (x, mean, std)})]`` for :func:`line_panels`."""
+    """Group rows into ``[(panel title, {series: (x, mean, std)})]`` for :func:`line_panels`.
+
+    ``std`` is the sample standard deviation over the rows of a point, None for a series
+    whose points each come from one row (an exact value, one replication: no spread).
+    """
     summary = summarize(rows, [panel_key, series_key, x_key])
     panels: dict = {}
     for s in summary:
@@ -78,16 +86,25 @@ def series_panels(rows, panel_key, series_key, x_key, panel_fmt="{}", series_fmt
         x, m, sd = panel.setdefault(series_fmt.format(s[series_key]), ([], [], []))
         x.append(s[x_key])
         m.append(s["mean"])
-        sd.append(s["std"])
+        sd.append(s["std"] if s["n"] > 1 else None)
     out = []
     for title, series in panels.items():
         ordered = {}
         for label, (x, m, sd) in series.items():
             order = np.argsort(x)
-            ordered[label] = ([x[i] for i in order], [m[i] for i in order],
-                              [sd[i] for i in order])
+            spread = None if any(v is None for v in sd) else [sd[i] for i in order]
+            ordered[label] = ([x[i] for i in order], [m[i] for i in order], spread)
         out.append((title, ordered))
     return out
+
+
+def spread_note(n: int, what: str = "replications", kind: str = "bands") -> str:
+    """The legend title saying what the bands or bars are: ``+-1 s.d. over n replications``.
+
+    Every figure shows the sample standard deviation (the spread of one run), never the
+    standard error of the mean.
+    """
+    return f"{kind}: ±1 standard deviation over {n} {what}"
 
 
 def plot_series(rows, panel_key, series_key, x_key, *, xlabel, ylabel, title, **kw):

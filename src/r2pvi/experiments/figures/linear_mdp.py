@@ -7,11 +7,16 @@ import numpy as np
 from ...envs import SimulatedLinearMDP
 from ..results import format_table, summarize
 from ..runner import Task
-from .common import Figure, evaluate, make_estimator, plot_series
+from .common import Figure, evaluate, make_estimator, plot_series, spread_note
 
 __all__ = ["FIG1A", "FIG1B", "FIG1C"]
 
 Q_GRID = [round(0.1 * i, 1) for i in range(11)]
+
+
+def _div(name: str) -> str:
+    """Display name of a divergence: TV, KL, chi2."""
+    return name if name == "chi2" else name.upper()
 
 # Settings of the paper's Appendix A (Table "Hyper-parameters") shared by fig1a-c.
 LINEAR_MDP_DEFAULTS = {
@@ -88,10 +93,45 @@ def _replicated(settings, algorithms, qs, extra_tasks=()):
     return tasks + list(extra_tasks)
 
 
+def _merge_exact_rows(rows):
+    """Exact optima with identical values on every q share one row (as in the plot)."""
+    from ..plotting import exact_groups
+
+    exact: dict = {}
+    for r in rows:
+        if r["kind"] == "exact":
+            x, v, _ = exact.setdefault(r["algorithm"], ([], [], None))
+            x.append(r["q"])
+            v.append(r["value"])
+    rename = {old: new for new, olds in exact_groups(exact).items() for old in olds}
+    out, seen = [], set()
+    for r in rows:
+        if r["kind"] == "exact":
+            r = dict(r, algorithm=rename[r["algorithm"]])
+            if (r["algorithm"], r["q"]) in seen:
+                continue
+            seen.add((r["algorithm"], r["q"]))
+        out.append(r)
+    return out
+def _shown_columns(values, preferred, limit):
+    """The q columns of a summary table: every q when there are at most ``limit``, else the
+    ``preferred`` ones that were run, else ``limit`` evenly spaced ones (never none)."""
+    values = sorted(set(values))
+    if len(values) <= limit:
+        return values
+    chosen = [v for v in preferred if v in values]
+    if len(chosen) >= 2:
+        return chosen
+    idx = np.unique(np.linspace(0, len(values) - 1, limit).round().astype(int))
+    return [values[i] for i in idx]
+
+
 def _table_by_q(rows, settings, columns=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0)):
     out = []
+    columns = _shown_columns(settings["qs"], columns, len(columns))
     for xi_norm in settings["xi_norms"]:
-        sub = [r for r in rows if r["xi_norm"] == xi_norm and r["q"] in columns]
+        sub = [r for r in _merge_exact_rows([r for r in rows if r["xi_norm"] == xi_norm])
+               if r["q"] in columns]  # merged on every q, shown on a few
         out.append(f"||xi||_1 = {xi_norm}: average return (mean±std over replications) by q")
         out.append(format_table(summarize(sub, ["algorithm", "q"]), "algorithm", "q"))
     return "\n".join(out)
@@ -119,7 +159,8 @@ def _fig1a_tasks(s):
 def _fig1a_plot(rows, s):
     return plot_series(rows, "xi_norm", "algorithm", "q", xlabel="perturbation q",
                        ylabel="average return", panel_fmt="||xi||_1 = {}",
-                       title=f"Simulated linear MDP, lam = {s['lam']}")
+                       title=f"Simulated linear MDP, lam = {s['lam']}",
+                       spread=spread_note(s["replications"]) + "; dashed: exact optima")
 
 
 FIG1A = Figure(
@@ -140,16 +181,17 @@ def _fig1b_tasks(s):
 
 
 def _fig1b_plot(rows, s):
-    rows = [dict(r, panel=f"R2PVI-{r['divergence']}, ||xi||_1 = {r['xi_norm']}",
+    rows = [dict(r, panel=f"R2PVI-{_div(r['divergence'])}, ||xi||_1 = {r['xi_norm']}",
                  series=f"lam = {r['param']}") for r in rows]
     return plot_series(rows, "panel", "series", "q", xlabel="perturbation q",
                        ylabel="average return", title="R2PVI: smaller lam, more robust",
-                       ncols=len(s["divergences"]))
+                       ncols=len(s["divergences"]), spread=spread_note(s["replications"]))
 
 
 def _fig1b_table(rows, s):
+    columns = _shown_columns(s["qs"], (0.0, 0.5, 1.0), 3)
     sub = [dict(r, setting=f"xi={r['xi_norm']} {r['algorithm']}") for r in rows
-           if r["q"] in (0.0, 0.5, 1.0)]
+           if r["q"] in columns]
     return ("average return by q (mean±std over replications)\n"
             + format_table(summarize(sub, ["setting", "q"]), "setting", "q"))
 
@@ -169,15 +211,24 @@ FIG1C_DEFAULTS = {**LINEAR_MDP_DEFAULTS, "q": 0.9,
 
 def _fig1c_tasks(s):
     algorithms = [("DRPVI (x = rho)", "DRPVI", rho, "tv") for rho in s["rhos"]]
-    algorithms += [(f"R2PVI-{d} (x = lam)", "R2PVI", lam, d) for d in s["divergences"]
+    algorithms += [(f"R2PVI-{_div(d)} (x = lam)", "R2PVI", lam, d) for d in s["divergences"]
                    for lam in s["lams"]]
     return _replicated(s, algorithms, [s["q"]])
 
 
 def _fig1c_plot(rows, s):
-    return plot_series(rows, "xi_norm", "algorithm", "param", xlabel="rho (DRPVI) / lam (R2PVI)",
+    # rho and lam span two decades; rho = 0 (DRPVI = PEVI-like) must stay visible: a log axis
+    # above the smallest positive grid value, linear below it.
+    values = sorted({float(v) for v in list(s["rhos"]) + list(s["lams"])})
+    positive = [v for v in values if v > 0]
+    xscale = ("symlog", min(positive)) if values and values[0] == 0 else "log"
+    ticks = [v for v in (0, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20)
+             if (v > 0 or values[0] == 0) and values[0] <= v <= values[-1]]
+    return plot_series(rows, "xi_norm", "algorithm", "param",
+                       xlabel="rho (DRPVI) / lam (R2PVI), log axis",
                        ylabel=f"average return at q = {s['q']}", panel_fmt="||xi||_1 = {}",
-                       title="Fixed target q: DRPVI against rho, R2PVI against lam")
+                       title="Fixed target q: DRPVI against rho, R2PVI against lam",
+                       xscale=xscale, xticks=ticks, spread=spread_note(s["replications"]))
 
 
 def _fig1c_table(rows, s):

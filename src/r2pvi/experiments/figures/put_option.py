@@ -7,10 +7,11 @@ import time
 import numpy as np
 
 from ...envs import AmericanPutOption
+from ...evaluation import option_value
 from ..plotting import line_panels
 from ..results import format_table, summarize
 from ..runner import Task
-from .common import Figure, evaluate, make_estimator, plot_series, series_panels
+from .common import Figure, evaluate, make_estimator, plot_series, series_panels, spread_note
 
 __all__ = ["FIG1D", "FIG_VA", "FIG2A", "FIG2B"]
 
@@ -31,6 +32,10 @@ PUT_DEFAULTS = {
 }
 
 
+def _div(name: str) -> str:
+    return name if name == "chi2" else name.upper()
+
+
 def _env(s, d=None):
     return AmericanPutOption(p0=s["p0"], d=d or s["features"], H=s["horizon"],
                              strike=s["strike"], anchor_span=s["anchor_span"])
@@ -49,14 +54,19 @@ def put_replication(seq, *, replication, algorithms, settings):
     rng = np.random.default_rng(seq)
     env = _env(settings)
     data = env.collect(settings["trajectories"], seed=rng)
-    tests = [(p, env.perturbed(p)) for p in settings["price_up"]]
+    price_up = settings["price_up"]
     rows = []
     for label, kind, param, divergence in algorithms:
         est = make_estimator(kind, param, divergence=divergence, **_common(settings, env))
         est.fit(data)
-        for p, test_env in tests:
-            value = evaluate(test_env, est, settings["evaluation"], settings["test_episodes"],
-                             rng)
+        if settings["evaluation"] == "exact":
+            # One lattice pass for every price-up probability: the policy's switch prices
+            # do not depend on it.
+            values = [float(v) for v in option_value(env, est, price_up=price_up)]
+        else:
+            values = [evaluate(env.perturbed(p), est, settings["evaluation"],
+                               settings["test_episodes"], rng) for p in price_up]
+        for p, value in zip(price_up, values, strict=True):
             rows.append({"replication": replication, "algorithm": label, "kind": kind,
                          "divergence": divergence, "param": param, "price_up": p,
                          "value": value})
@@ -76,7 +86,7 @@ def _put_plot(title):
         rows = [dict(r, panel="American put option") for r in rows]
         return plot_series(rows, "panel", "algorithm", "price_up",
                            xlabel="price-up probability", ylabel="average return",
-                           title=title)
+                           title=title, spread=spread_note(s["replications"]))
     return plot
 
 
@@ -92,7 +102,7 @@ FIG1D_DEFAULTS = {**PUT_DEFAULTS, "lams": [1.0, 3.0, 5.0], "rhos": [0.2, 0.1, 0.
 
 def _fig1d_algorithms(s):
     algs = [("PEVI", "PEVI", None, "none")]
-    algs += [(f"R2PVI-{s['divergence']} lam={lam}", "R2PVI", lam, s["divergence"])
+    algs += [(f"R2PVI-{_div(s['divergence'])} lam={lam}", "R2PVI", lam, s["divergence"])
              for lam in s["lams"]]
     algs += [(f"DRPVI rho={rho}", "DRPVI", rho, "tv") for rho in s["rhos"]]
     return algs
@@ -139,8 +149,8 @@ TIMING_ALGORITHMS = [
 
 
 def timing_task(seq, *, trajectories, features, repeats, settings):
-    """Fit every algorithm ``repeats`` times on one put-option dataset; rows hold the mean
-    wall-clock time of a fit (after one untimed warm-up fit).
+    """Fit every algorithm ``repeats`` times on one put-option dataset; one row per timed fit
+    holds its wall-clock seconds (after one untimed warm-up fit).
 
     BLAS runs with ``settings["blas_threads"]`` threads (default 1, 0 leaves it alone): on a
     shared 2-core machine, multi-threaded OpenBLAS busy-waits when the cores are taken and
@@ -164,14 +174,12 @@ def _timed_fits(seq, trajectories, features, repeats, settings):
     for label, kind, param, divergence in TIMING_ALGORITHMS:
         est = make_estimator(kind, param, divergence=divergence, **_common(settings, env))
         est.fit(data)
-        times = []
-        for _ in range(repeats):
+        for repeat in range(repeats):  # one tidy row per timed fit
             t0 = time.perf_counter()
             est.fit(data)
-            times.append(time.perf_counter() - t0)
-        rows.append({"algorithm": label, "trajectories": trajectories, "features": features,
-                     "value": float(np.mean(times)), "min_seconds": float(np.min(times)),
-                     "repeats": repeats})
+            rows.append({"algorithm": label, "trajectories": trajectories,
+                         "features": features, "repeat": repeat,
+                         "value": time.perf_counter() - t0})
     return rows
 
 
@@ -198,14 +206,19 @@ def _timing_figure(name, axis, grid_key, fixed_key, claim):
                                axis)
         return line_panels(panels, xlabel="N (trajectories)" if axis == "trajectories"
                            else "d (features)", ylabel="seconds per fit", logy=True,
-                           title=f"Fit time against {'N' if axis == 'trajectories' else 'd'}")
+                           style="bars", title=f"Fit time against "
+                           f"{'N' if axis == 'trajectories' else 'd'} (American put option)",
+                           spread=spread_note(s["repeats"], "timed fits", "bars"))
 
     def table(rows, s):
         summary = summarize(rows, ["algorithm", axis])
-        return (f"mean seconds per fit (of {s['repeats']})\n"
+        what = (f"mean±std over {s['repeats']} timed fits" if s["repeats"] > 1
+                else "one timed fit")
+        return (f"seconds per fit ({what})\n"
                 + format_table(summary, "algorithm", axis, digits=4))
 
-    return Figure(name, claim, defaults, tasks, plot, table, serial=True)
+    return Figure(name, claim, defaults, tasks, plot, table, serial=True,
+                  quantity="fit time", unit="s")
 
 
 FIG2A = _timing_figure(

@@ -1,0 +1,469 @@
+"""Roll policies out in any Gymnasium environment: collect episodes, or just their returns.
+
+One rollout loop serves :func:`collect_episodes` and
+:func:`r2pvi.evaluation.evaluate_policy`. It is
+
+- **seeded per episode**: episode ``i`` resets the environment with its own seed and draws the
+  policy's random numbers from its own generator, both from
+  ``SeedSequence(seed).spawn(n_episodes)[i]``; so the episodes are the same whatever the
+  number of parallel environments and their scheduling (tested: vectorized rollouts equal
+  single-environment rollouts);
+- **vectorized**: the policy acts on a batch of observations, one per sub-environment of a
+  Gymnasium vector environment (``SyncVectorEnv``/``AsyncVectorEnv`` built from copies of
+  ``env`` with ``n_envs``, or a vector environment you pass). A sub-environment that finishes
+  is reset at once with the next episode's seed (``reset(options={"reset_mask": ...})``).
+  Vector environments that cannot reset a subset with their own seeds (Gymnasium's
+  vectorized ``CartPoleVectorEnv``) run in batches of ``num_envs`` episodes seeded once per
+  batch: reproducible for a seed and a ``num_envs``, but not equal to single-environment
+  rollouts.
+
+Policies
+--------
+A policy is a callable ``policy(h, observations) -> actions`` acting on a batch: ``h`` is the
+``(n,)`` integer array of the 0-based step of each row (sub-environments of a vector
+environment are at different steps), ``observations`` the ``(n, ...)`` batch and the result
+``(n,)`` integer actions. Stochastic policies are objects with ``sample(h, observations,
+rngs)`` where ``rngs`` holds one ``numpy.random.Generator`` per row (each episode's own
+stream): :class:`UniformPolicy`, :class:`EpsilonGreedy`. The string ``"uniform"`` is
+:class:`UniformPolicy`. A fitted estimator's ``as_policy(feature_map)`` is a policy.
+"""
+
+from __future__ import annotations
+
+import copy
+import numbers
+import sys
+from collections import deque
+
+import numpy as np
+
+from ..episodes import Episode
+from ._sampling import check_count
+
+__all__ = [
+    "collect_episodes",
+    "run_episodes",
+    "UniformPolicy",
+    "EpsilonGreedy",
+    "episode_seeds",
+]
+
+
+def _require_gymnasium():
+    try:
+        import gymnasium
+    except ImportError:
+        raise ImportError(
+            "rollouts in Gymnasium environments need gymnasium: pip install 'r2pvi[gym]'"
+        ) from None
+    return gymnasium
+
+
+# ---------------------------------------------------------------------- behaviour policies
+class UniformPolicy:
+    """Uniformly random actions among ``n_actions``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from r2pvi.envs.collect import UniformPolicy
+    >>> rngs = [np.random.default_rng(s) for s in range(3)]
+    >>> UniformPolicy(2).sample(np.zeros(3, int), np.zeros((3, 4)), rngs).shape
+    (3,)
+    """
+
+    def __init__(self, n_actions: int):
+        self.n_actions = _check_n_actions(n_actions)
+
+    def sample(self, h, observations, rngs) -> np.ndarray:
+        return np.array([rng.integers(self.n_actions) for rng in rngs], dtype=np.int64)
+
+    def __repr__(self) -> str:
+        return f"UniformPolicy({self.n_actions})"
+
+
+class EpsilonGreedy:
+    """With probability ``epsilon`` a uniformly random action, else ``policy``'s action.
+
+    Parameters
+    ----------
+    policy : policy
+        A deterministic callable ``policy(h, observations)`` or a stochastic policy.
+    epsilon : float in [0, 1]
+    n_actions : int
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from r2pvi.envs.collect import EpsilonGreedy
+    >>> always_one = lambda h, obs: np.ones(len(obs), dtype=int)
+    >>> rngs = [np.random.default_rng(s) for s in range(1000)]
+    >>> acts = EpsilonGreedy(always_one, 0.3, 2).sample(np.zeros(1000, int), np.zeros(1000), rngs)
+    >>> 0.1 < float((acts == 0).mean()) < 0.2          # 0.3 * 1/2 of the actions are 0
+    True
+    """
+
+    def __init__(self, policy, epsilon: float, n_actions: int):
+        if isinstance(epsilon, bool) or not isinstance(epsilon, numbers.Real) or not (
+            0.0 <= float(epsilon) <= 1.0
+        ):
+            raise ValueError(f"epsilon must be a probability in [0, 1], got {epsilon!r}")
+        self.policy = policy
+        self.epsilon = float(epsilon)
+        self.n_actions = _check_n_actions(n_actions)
+        self._act = as_policy_function(policy, self.n_actions)
+
+    def sample(self, h, observations, rngs) -> np.ndarray:
+        actions = np.asarray(self._act(h, observations, rngs), dtype=np.int64).copy()
+        for i, rng in enumerate(rngs):
+            if rng.random() < self.epsilon:
+                actions[i] = rng.integers(self.n_actions)
+        return actions
+
+    def __repr__(self) -> str:
+        return f"EpsilonGreedy({self.policy!r}, epsilon={self.epsilon}, n_actions={self.n_actions})"
+
+
+def _check_n_actions(n_actions) -> int:
+    if isinstance(n_actions, bool) or not isinstance(n_actions, numbers.Integral):
+        raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
+    if n_actions < 1:
+        raise ValueError(f"n_actions must be >= 1, got {n_actions}")
+    return int(n_actions)
+
+
+def as_policy_function(policy, n_actions: int | None):
+    """``fn(h, observations, rngs) -> actions`` for any accepted policy form."""
+    if isinstance(policy, str):
+        if policy.lower() != "uniform":
+            raise ValueError(
+                f"policy must be 'uniform', a callable or a policy object, got {policy!r}"
+            )
+        if n_actions is None:
+            raise ValueError("policy='uniform' needs a Discrete action space")
+        policy = UniformPolicy(n_actions)
+    if callable(getattr(policy, "sample", None)):
+        return policy.sample
+    if callable(policy):
+        return lambda h, observations, rngs: policy(h, observations)
+    raise TypeError(
+        "policy must be a callable policy(h, observations) -> actions, an object with "
+        f"sample(h, observations, rngs), or 'uniform'; got {type(policy).__name__}"
+    )
+
+
+# ---------------------------------------------------------------------- seeding
+def episode_seeds(seed, n_episodes: int):
+    """``(env_seeds (n,) int, policy_rngs list)``: episode ``i``'s reset seed and generator.
+
+    Both come from ``SeedSequence(seed).spawn(n_episodes)[i]`` (its two children), so an
+    episode's randomness depends only on ``seed`` and ``i``.
+    """
+    if isinstance(seed, np.random.Generator):
+        ss = np.random.SeedSequence(int(seed.integers(2**63)))
+    elif isinstance(seed, np.random.SeedSequence):
+        ss = seed
+    elif seed is None or (isinstance(seed, numbers.Integral) and not isinstance(seed, bool)):
+        ss = np.random.SeedSequence(seed)
+    else:
+        raise TypeError(
+            f"seed must be None, an integer, a SeedSequence or a numpy Generator, got {seed!r}"
+        )
+    env_seeds = np.empty(n_episodes, dtype=np.int64)
+    rngs = []
+    for i, child in enumerate(ss.spawn(n_episodes)):
+        env_ss, pol_ss = child.spawn(2)
+        env_seeds[i] = int(env_ss.generate_state(1, np.uint32)[0])
+        rngs.append(np.random.default_rng(pol_ss))
+    return env_seeds, rngs
+
+
+# ---------------------------------------------------------------------- vector envs
+def _vector_env(env, n_envs, n_episodes):
+    """``(vector_env, resets_subsets, owned)`` for ``env`` and the requested ``n_envs``.
+
+    ``resets_subsets``: the vector env resets a subset of its sub-environments with their own
+    seeds (``reset_mask``); ``owned``: built here, so closed after the run.
+    """
+    gymnasium = _require_gymnasium()
+    from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
+
+    if isinstance(env, VectorEnv):
+        if n_envs is not None and n_envs != env.num_envs:
+            raise ValueError(f"n_envs={n_envs} differs from the vector env's {env.num_envs}")
+        return env, isinstance(env, SyncVectorEnv | AsyncVectorEnv), False
+    if n_envs is not None:
+        n_envs = check_count(n_envs, "n_envs")
+    if isinstance(env, str):
+        n = min(n_envs or 8, n_episodes)
+        fns = [lambda: gymnasium.make(env)] * n
+        return SyncVectorEnv(fns, autoreset_mode=AutoresetMode.DISABLED), True, True
+    if isinstance(env, gymnasium.Env):
+        n = min(n_envs or 1, n_episodes)
+        replicas = [env] + [_replicate(env) for _ in range(n - 1)]
+        fns = [(lambda e=e: e) for e in replicas]
+        return SyncVectorEnv(fns, autoreset_mode=AutoresetMode.DISABLED), True, False
+    if callable(env):
+        n = min(n_envs or 1, n_episodes)
+        return SyncVectorEnv([env] * n, autoreset_mode=AutoresetMode.DISABLED), True, True
+    raise TypeError(
+        "env must be a gymnasium.Env, a gymnasium vector env, a registered id or a factory "
+        f"returning an env; got {type(env).__name__}"
+    )
+
+
+def _check_reset_options(venv, options: dict) -> None:
+    """Refuse perturbation options that the environment would silently ignore."""
+    from .perturbations import ACTION_NOISE, PARAMETERS
+
+    names = {ACTION_NOISE}.union(*(set(t) for t in PARAMETERS.values()))
+    asked = sorted(set(options) & names)
+    first = getattr(venv, "envs", [None])[0]
+    if not asked or first is None:
+        return
+    try:
+        first.get_wrapper_attr("set_params")
+    except AttributeError:
+        raise ValueError(
+            f"reset_options sets {asked}, but the environment does not read parameters at "
+            "reset: wrap it in r2pvi.envs.perturbations.PerturbedEnv (or make_perturbed)"
+        ) from None
+
+
+def _replicate(env):
+    try:
+        return copy.deepcopy(env)
+    except Exception as exc:  # noqa: BLE001 - any failure means: cannot copy this env
+        raise ValueError(
+            f"cannot copy {env} to run n_envs > 1 copies ({exc}); pass a factory "
+            "(lambda: make_my_env()) or a gymnasium vector env instead"
+        ) from None
+
+
+# ---------------------------------------------------------------------- the rollout loop
+def run_episodes(env, policy, n_episodes: int, *, seed=None, max_steps=None, n_envs=None,
+                 record: bool = True, reset_options=None, progress=None):
+    """Run ``n_episodes`` episodes of ``policy``: Episode objects (``record``) or returns.
+
+    See :func:`collect_episodes` for the arguments. Returns a list of
+    :class:`~r2pvi.episodes.Episode` when ``record`` is True, else the ``(n_episodes,)``
+    array of undiscounted returns.
+    """
+    n_episodes = check_count(n_episodes, "n_episodes")
+    if max_steps is not None:
+        max_steps = check_count(max_steps, "max_steps")
+    if reset_options is not None and not isinstance(reset_options, dict):
+        raise TypeError(f"reset_options must be a dict or None, got {reset_options!r}")
+    venv, per_episode, owned = _vector_env(env, n_envs, n_episodes)
+    if reset_options:
+        _check_reset_options(venv, reset_options)
+    space = venv.single_action_space
+    n_actions = int(space.n) if hasattr(space, "n") else None
+    act = as_policy_function(policy, n_actions)
+    seeds, rngs = episode_seeds(seed, n_episodes)
+    bar = _progress_bar(progress, n_episodes)
+    try:
+        runner = _run_per_episode if per_episode else _run_batches
+        out = runner(venv, act, seeds, rngs, max_steps, record, reset_options or {}, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+        if owned:
+            venv.close()
+    return out
+
+
+class _Recorder:
+    """The growing data of the episode running in one sub-environment."""
+
+    __slots__ = ("episode", "obs", "actions", "rewards", "t", "ret")
+
+    def __init__(self, episode: int, obs, record: bool):
+        self.episode = episode
+        self.obs = [obs] if record else None
+        self.actions, self.rewards = ([], []) if record else (None, None)
+        self.t = 0
+        self.ret = 0.0
+
+
+def _finish(rec, seeds, terminated, truncated, record):
+    if not record:
+        return rec.ret
+    T = rec.t
+    term = np.zeros(T, dtype=bool)
+    trunc = np.zeros(T, dtype=bool)
+    if T:
+        term[-1] = terminated
+        trunc[-1] = truncated and not terminated
+    return Episode(
+        observations=np.stack(rec.obs), actions=np.asarray(rec.actions),
+        rewards=np.asarray(rec.rewards, dtype=float), terminations=term, truncations=trunc,
+        id=rec.episode, seed=int(seeds[rec.episode]),
+    )
+
+
+def _idle_action(space):
+    """A fixed valid action for sub-environments with no episode left to run."""
+    if hasattr(space, "n") and hasattr(space, "start"):
+        return space.start
+    return space.sample()
+
+
+def _check_actions(actions, n: int):
+    a = np.asarray(actions)
+    if a.shape != (n,):
+        raise ValueError(
+            f"the policy must return one action per observation, shape ({n},); got {a.shape}"
+        )
+    return a
+
+
+def _final_obs(info, i, fallback):
+    if "final_obs" in info and info.get("_final_obs", np.zeros(i + 1, bool))[i]:
+        return info["final_obs"][i]
+    return fallback
+
+
+def _advance(slots, rows, a, step, max_steps, record, seeds, results, bar) -> list:
+    """Record one step of the episodes in ``slots[rows]``; returns the slots that finished."""
+    nxt, rew, term, trunc, info = step
+    finished = []
+    for j, i in enumerate(rows):
+        rec = slots[i]
+        rec.t += 1
+        rec.ret += float(rew[i])
+        done = bool(term[i] or trunc[i])
+        if record:
+            rec.obs.append(_final_obs(info, i, nxt[i]) if done else nxt[i])
+            rec.actions.append(a[j])
+            rec.rewards.append(float(rew[i]))
+        cut = max_steps is not None and rec.t >= max_steps
+        if done or cut:
+            results[rec.episode] = _finish(rec, seeds, bool(term[i]), bool(trunc[i]) or cut,
+                                           record)
+            finished.append(i)
+            if bar is not None:
+                bar.update(1)
+    return finished
+
+
+def _act(act, slots, rows, obs, rngs):
+    h = np.array([slots[i].t for i in rows], dtype=np.int64)
+    return _check_actions(act(h, obs[rows], [rngs[slots[i].episode] for i in rows]), len(rows))
+
+
+def _run_per_episode(venv, act, seeds, rngs, max_steps, record, options, bar):
+    """Each sub-environment runs the next pending episode, reset with that episode's seed."""
+    N = venv.num_envs
+    pending = deque(range(len(seeds)))
+    results: list = [None] * len(seeds)
+    first = [pending.popleft() if pending else None for _ in range(N)]
+    obs, _ = venv.reset(seed=[None if e is None else int(seeds[e]) for e in first],
+                        options=dict(options) if options else None)
+    slots = [None if e is None else _Recorder(e, obs[i], record) for i, e in enumerate(first)]
+    idle_action = _idle_action(venv.single_action_space)
+    while any(s is not None for s in slots):
+        rows = [i for i, s in enumerate(slots) if s is not None]
+        a = _act(act, slots, rows, obs, rngs)
+        actions = np.array([idle_action] * N)
+        actions[rows] = a
+        step = venv.step(actions)
+        obs, term, trunc = step[0], step[2], step[3]
+        reset = term | trunc  # idle sub-environments that ended must be reset too
+        for i in _advance(slots, rows, a, step, max_steps, record, seeds, results, bar):
+            slots[i] = None
+            reset[i] = True
+        if reset.any():
+            starts = [pending.popleft() if r and pending and slots[i] is None else None
+                      for i, r in enumerate(reset)]
+            opts = dict(options)
+            opts["reset_mask"] = np.asarray(reset, dtype=bool)
+            obs, _ = venv.reset(seed=[None if e is None else int(seeds[e]) for e in starts],
+                                options=opts)
+            for i, e in enumerate(starts):
+                if e is not None:
+                    slots[i] = _Recorder(e, obs[i], record)
+    return results if record else np.asarray(results, dtype=float)
+
+
+def _run_batches(venv, act, seeds, rngs, max_steps, record, options, bar):
+    """Vector envs without per-subset seeding: batches of ``num_envs`` episodes, one seed each
+    (the first episode of every sub-environment is kept)."""
+    N = venv.num_envs
+    n = len(seeds)
+    results: list = [None] * n
+    for start in range(0, n, N):
+        batch = list(range(start, min(start + N, n)))
+        obs, _ = venv.reset(seed=int(seeds[start]), options=dict(options) if options else None)
+        slots = [_Recorder(e, obs[i], record) for i, e in enumerate(batch)]
+        live = list(range(len(batch)))
+        while live:
+            a = _act(act, slots, live, obs, rngs)
+            actions = np.zeros(N, dtype=np.int64)
+            actions[live] = a
+            step = venv.step(actions)
+            obs = step[0]
+            done = set(_advance(slots, live, a, step, max_steps, record, seeds, results, bar))
+            live = [i for i in live if i not in done]
+    return results if record else np.asarray(results, dtype=float)
+
+
+def _progress_bar(progress, total):
+    """A tqdm bar when asked (True), or by default when tqdm is installed and on a TTY."""
+    if progress is None:
+        progress = total >= 100 and hasattr(sys.stderr, "isatty") and sys.stderr.isatty()
+    if not progress:
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        return None
+    return tqdm(total=total, unit="episode", leave=False)
+
+
+def collect_episodes(env, policy, n_episodes: int, *, seed=None, max_steps=None, n_envs=None,
+                     reset_options=None, progress=None) -> list:
+    """Collect ``n_episodes`` episodes of ``policy`` in a Gymnasium environment.
+
+    Parameters
+    ----------
+    env : gymnasium.Env, gymnasium vector env, registered id or factory
+        A single environment runs alone, or as ``n_envs`` copies (``copy.deepcopy``) in a
+        ``SyncVectorEnv``; an id or a factory builds ``n_envs`` environments (8 for an id by
+        default); a vector environment is used as is (see the module docstring).
+    policy : callable, policy object or "uniform"
+        ``policy(h, observations) -> actions`` on a batch, or an object with
+        ``sample(h, observations, rngs)`` (:class:`EpsilonGreedy`, :class:`UniformPolicy`),
+        or a fitted estimator's ``as_policy(feature_map)``.
+    n_episodes : int
+    seed : int, SeedSequence or Generator, optional
+        Episode ``i`` uses ``SeedSequence(seed).spawn(n_episodes)[i]`` (reset seed and the
+        policy's random numbers): the result does not depend on ``n_envs``.
+    max_steps : int, optional
+        Cut episodes after this many steps (marked truncated); None relies on the
+        environment's own time limit.
+    n_envs : int, optional
+        Number of parallel sub-environments.
+    reset_options : dict, optional
+        Passed to every ``reset`` (RRLS-style perturbations: ``{"gravity": 12.0}``).
+    progress : bool, optional
+        A tqdm progress bar; None shows one on a terminal for 100 episodes or more.
+
+    Returns
+    -------
+    list of :class:`~r2pvi.episodes.Episode`
+        In episode order, with Minari's fields (``observations`` T+1, ``actions``,
+        ``rewards``, ``terminations``, ``truncations``), ready for
+        :meth:`r2pvi.OfflineDataset.from_episodes`.
+
+    Examples
+    --------
+    >>> import gymnasium as gym
+    >>> from r2pvi.envs import collect_episodes
+    >>> eps = collect_episodes(gym.make("CartPole-v1"), "uniform", 3, seed=0)
+    >>> [ep.observations.shape[0] == len(ep) + 1 for ep in eps], bool(eps[0].terminations[-1])
+    ([True, True, True], True)
+    """
+    return run_episodes(env, policy, n_episodes, seed=seed, max_steps=max_steps,
+                        n_envs=n_envs, record=True, reset_options=reset_options,
+                        progress=progress)

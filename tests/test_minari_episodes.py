@@ -1,0 +1,98 @@
+"""Minari datasets made by Minari's own API from an environment r2pvi did not define."""
+
+import importlib
+import os
+
+import numpy as np
+import pytest
+
+from r2pvi import OfflineDataset
+from r2pvi.episodes import episode_observations
+from r2pvi.features import NormalizedRBF, cross_actions
+
+REQUIRE_EXTRAS = bool(os.environ.get("CI") or os.environ.get("R2PVI_REQUIRE_EXTRAS"))
+
+
+def require(module):
+    """Import an optional dependency: skip without it, unless CI demands the extras."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        if REQUIRE_EXTRAS:
+            raise
+        pytest.skip(f"optional dependency {module!r} is not installed ({exc})")
+
+
+@pytest.fixture
+def minari(tmp_path, monkeypatch):
+    require("gymnasium")
+    module = require("minari")
+    require("h5py")
+    require("PIL")
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    return module
+
+
+def _buffers(gym, n):
+    """Episodes recorded by hand, as any Minari user would, in Minari's EpisodeBuffer."""
+    from minari.data_collector import EpisodeBuffer
+
+    env = gym.make("CartPole-v1")
+    rng = np.random.default_rng(0)
+    out = []
+    for k in range(n):
+        obs, _ = env.reset(seed=k)
+        obs_, A, R, TE, TR = [obs], [], [], [], []
+        done = False
+        while not done:
+            a = int(rng.integers(2))
+            obs, r, te, tr, _ = env.step(a)
+            obs_.append(obs), A.append(a), R.append(r), TE.append(te), TR.append(tr)
+            done = te or tr or len(A) == 40
+        TR[-1] = TR[-1] or not TE[-1]
+        out.append(EpisodeBuffer(id=k, observations=np.array(obs_), actions=np.array(A),
+                                 rewards=R, terminations=TE, truncations=TR, infos={}))
+    return env, out
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_third_party_minari_dataset(minari):
+    import gymnasium as gym
+
+    from r2pvi.envs.minari import from_minari
+
+    env, buffers = _buffers(gym, 6)
+    md = minari.create_dataset_from_buffers("cartpole/random-v0", buffers, env=env,
+                                            algorithm_name="random")
+    with pytest.raises(ValueError, match="feature_map"):
+        from_minari(md)  # used to crash: 'CartPoleEnv' object has no attribute 'model'
+    fmap = cross_actions(NormalizedRBF(n_centers=2).fit(episode_observations(md)), 2)
+    direct = OfflineDataset.from_episodes(md, fmap, 2)
+    loaded = from_minari("cartpole/random-v0", feature_map=fmap)  # local id, no download
+    by_hand = OfflineDataset.from_episodes(
+        [{"observations": b.observations, "actions": b.actions, "rewards": b.rewards,
+          "terminations": b.terminations, "truncations": b.truncations} for b in buffers],
+        fmap, 2)
+    assert direct.horizon == max(len(b.rewards) for b in buffers)
+    for ds in (direct, loaded):
+        np.testing.assert_allclose(ds.phi, by_hand.phi, rtol=1e-6)
+        np.testing.assert_array_equal(ds.rewards, by_hand.rewards)
+        np.testing.assert_array_equal(np.isnan(ds.next_values), np.isnan(by_hand.next_values))
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_collected_episodes_round_trip_through_minari(minari, tmp_path):
+    import gymnasium as gym
+
+    from r2pvi.envs import collect_episodes
+    from r2pvi.envs.minari import episodes_to_minari
+
+    eps = collect_episodes(gym.make("CartPole-v1"), "uniform", 4, seed=2, max_steps=30)
+    md = episodes_to_minari(eps, "cartpole/uniform-v0", gym.make("CartPole-v1"),
+                            root=tmp_path / "elsewhere", algorithm_name="uniform")
+    assert md.total_episodes == 4
+    for e, back in zip(eps, md.iterate_episodes(), strict=True):
+        np.testing.assert_allclose(back.observations, e.observations)
+        np.testing.assert_array_equal(back.actions, e.actions)
+        np.testing.assert_array_equal(back.terminations, e.terminations)
+        np.testing.assert_array_equal(back.truncations, e.truncations)
