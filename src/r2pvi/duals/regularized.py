@@ -89,16 +89,21 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     v = np.asarray(v, dtype=float)
     upper = float(np.max(v)) if v_max is None else float(v_max)
     shift = float(np.min(v))
+    z = -(v - shift) / lam
     with np.errstate(under="ignore"):
-        ex = np.exp(-(v - shift) / lam)
+        ex = np.exp(z)
     if form == "paper":
         log_u = _log_moment(E, v, shift, lam, E(ex))
         return shift - lam * np.maximum(log_u, -(upper - shift) / lam)
     # The moment and its centered version (the regression of e^{-(V-c)/lam} - 1, exact to the
     # last digit when lam is large); their difference is the row sums E_i[1]. (Two
     # matrix-vector products: measured 100x faster than one (n, 2) product on the CI machine.)
+    um = ex - 1.0  # exact to the last digit where |e^z - 1| >= 1/2; expm1 near z = 0
+    near = ex > 0.5
+    if near.any():
+        um[near] = np.expm1(z[near])
     u = E(ex)
-    um = E(np.expm1(-(v - shift) / lam))
+    um = E(um)
     s = np.ones(E.n_dims) if E.nonnegative else u - um
     live = s > 0.0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
