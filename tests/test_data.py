@@ -109,12 +109,15 @@ def test_save_load_round_trip(tmp_path):
     states = rng.integers(4, size=(5, 2))
     ds = OfflineDataset.from_transitions(states, np.zeros((5, 2), int), rng.random((5, 2)),
                                          rng.integers(4, size=(5, 2)), lambda s, a: table[s, a], 2)
-    path = ds.save(tmp_path / "data")
-    assert path.suffix == ".npz"
-    back = OfflineDataset.load(path)
-    for name in ("phi", "rewards", "next_phi", "states", "actions", "next_states"):
-        np.testing.assert_array_equal(getattr(back, name)[:, :1], getattr(ds, name)[:, :1])
-    np.testing.assert_array_equal(back.next_values, ds.next_values)
+    legacy = ds.save(tmp_path / "data.npz")  # the version-1 single file still round-trips
+    assert legacy.suffix == ".npz" and legacy.is_file()
+    directory = ds.save(tmp_path / "data")  # the step-major directory (format version 2)
+    assert directory.is_dir()
+    for back in (OfflineDataset.load(legacy), OfflineDataset.load(directory),
+                 OfflineDataset.open(directory)):
+        for name in ("phi", "rewards", "next_phi", "states", "actions", "next_states"):
+            np.testing.assert_array_equal(getattr(back, name)[:, :1], getattr(ds, name)[:, :1])
+        np.testing.assert_array_equal(back.next_values, ds.next_values)
 
 
 def test_load_rejects_foreign_and_future_files(tmp_path):

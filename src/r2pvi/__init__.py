@@ -11,6 +11,7 @@ from .algorithms import DRPVI, DRVIL, PEVI, R2PVI, LinearEstimator
 from .algorithms import load_estimator as load
 from .data import OfflineDataset, SimplexFeatureWarning
 from .duals import FDivergence, cressie_read
+from .storage import DatasetWriter
 
 try:
     __version__ = version("r2pvi")
@@ -22,6 +23,7 @@ __all__ = [
     "evaluation",
     "features",
     "OfflineDataset",
+    "DatasetWriter",
     "SimplexFeatureWarning",
     "FDivergence",
     "cressie_read",

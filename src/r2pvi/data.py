@@ -6,25 +6,27 @@ the reward, and the features of *every* action at the next state ``phi(s_{h+1}, 
 from which the next step's value ``max_a' Q_{h+1}(s_{h+1}, a')`` is computed.
 Next-state actions whose value is known (an absorbing fail state, a stopping action
 with a known payoff) carry that value in ``next_values``; NaN means "learn it".
+
+The numbers live in a step-major :class:`~r2pvi.storage.StepSource` (in memory, in a
+dataset directory on disk, or in Dask arrays); see :mod:`r2pvi.storage`.
 """
 
 from __future__ import annotations
 
-import warnings
+import os
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
+from . import storage as _st
 from ._io import file_error, load_npz, save_npz
 from ._validation import as_float_array, as_index_array
+from .storage import SimplexFeatureWarning
 
 __all__ = ["OfflineDataset", "SimplexFeatureWarning", "check_simplex_features"]
 
-DATASET_FORMAT_VERSION = 1
-
-
-class SimplexFeatureWarning(UserWarning):
-    """Features break the paper's simplex assumption (phi_i >= 0 and sum_i phi_i = 1)."""
+DATASET_FORMAT_VERSION = 1  # the legacy single-file .npz format (still read and written)
 
 
 def check_simplex_features(phi: np.ndarray, name: str = "phi", atol: float = 1e-8) -> bool:
@@ -34,31 +36,18 @@ def check_simplex_features(phi: np.ndarray, name: str = "phi", atol: float = 1e-
     The d-rectangular theory assumes simplex features; the algorithms run on any
     features (the American put option's features break the assumption on purpose).
     """
-    if phi.size == 0:
-        return True
-    negative = bool((phi < -atol).any())
-    off_sum = bool((np.abs(phi.sum(axis=-1) - 1.0) > 1e-6).any())
-    if negative or off_sum:
-        what = " and ".join(
-            w for w, bad in (("negative entries", negative), ("rows not summing to 1", off_sum))
-            if bad
-        )
-        warnings.warn(
-            f"{name} has {what}: the paper's simplex assumption (phi_i >= 0, sum_i phi_i = 1) "
-            "does not hold. The algorithms still run; the d-rectangular guarantees do not apply.",
-            SimplexFeatureWarning,
-            stacklevel=3,
-        )
-        return False
-    return True
+    neg, off = _st.simplex_flags(np.asarray(phi), atol)
+    return _st.warn_simplex(name, neg, off, stacklevel=3)
 
 
 class OfflineDataset:
     """K trajectories of length H, as features of taken and next-state actions.
 
-    Build it with :meth:`from_features` or :meth:`from_transitions`; do not call the
-    constructor directly. Arrays are stored step-major internally (the engine reads one
-    step at a time) and exposed trajectory-major, as the constructors take them.
+    Build it with :meth:`from_features`, :meth:`from_transitions`,
+    :meth:`from_next_state_table`, :meth:`from_dask`, or open a dataset directory with
+    :meth:`open`; do not call the constructor directly. The numbers are stored step-major
+    (the engine reads one step at a time, a chunk of trajectories at a time) and exposed
+    trajectory-major, as the constructors take them.
 
     Attributes
     ----------
@@ -84,23 +73,33 @@ class OfflineDataset:
     (5, 2, 3, 4)
     """
 
-    def __init__(self, *, _phi, _rewards, _next_phi, _next_values, _extras=None):
-        # Private: the public constructors validate and hand over step-major copies.
-        self._phi = _phi  # (H, K, d)
-        self._rewards = _rewards  # (H, K)
-        self._next_phi = _next_phi  # (H, K, A, d)
-        self._next_values = _next_values  # (H, K, A) or None when no value is known
-        self._extras = dict(_extras or {})
-        self._nonnegative: bool | None = None
-        self._nonnegative_phi: bool | None = None
+    def __init__(self, *, _phi=None, _rewards=None, _next_phi=None, _next_values=None,
+                 _extras=None, _source=None):
+        # Private: the public constructors validate and hand over a step source (or, as
+        # before, step-major arrays: phi (H, K, d), rewards (H, K), next_phi (H, K, A, d),
+        # next_values (H, K, A) or None).
+        if _source is None:
+            nv = None if _next_values is None else _st.ArrayField(_next_values)
+            _source = _st.StepSource(
+                _st.ArrayField(_phi), _st.ArrayField(_rewards),
+                _st.StoredNext(_st.ArrayField(_next_phi), nv), _extras)
+        self._source = _source
+        self._nonnegative: bool | None = _source.next.nonnegative
+        self._nonnegative_phi: bool | None = _source.nonnegative_phi
 
     # ------------------------------------------------------------------ constructors
     @classmethod
     def from_features(
         cls, phi, rewards, next_phi, next_values=None, *, check_simplex: bool = True,
-        states=None, actions=None, next_states=None,
+        states=None, actions=None, next_states=None, dtype=None,
     ) -> OfflineDataset:
         """Build a dataset from feature arrays.
+
+        At most one copy is made (to step-major float storage), and none when the arrays
+        already are step-major floats: ``a.transpose(1, 0, ...)`` of a C-contiguous
+        ``(H, K, ...)`` float32/float64 array (such as ``ds.phi`` of another dataset). Then
+        the dataset keeps a read-only view of the caller's memory: do not modify it later.
+        Validation runs chunk by chunk, without full-size temporaries.
 
         Parameters
         ----------
@@ -119,70 +118,266 @@ class OfflineDataset:
             The observed states, action indices and next states behind the features, kept as
             ``ds.states``, ``ds.actions``, ``ds.next_states`` (saved, subset with the data);
             for features that :meth:`from_transitions` cannot express (step-dependent ones).
+        dtype : {None, "float32", "float64"}, default None
+            Storage type of the features: None keeps float32 or float64 input as it is (other
+            numbers become float64). Fitting accumulates in float64 either way.
 
         Returns
         -------
         OfflineDataset
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> phi_sm = np.full((2, 5, 3), 1 / 3)                 # step-major (H, K, d)
+        >>> ds = OfflineDataset.from_features(phi_sm.transpose(1, 0, 2), np.zeros((5, 2)),
+        ...                                   np.full((5, 2, 2, 3), 1 / 3))
+        >>> np.shares_memory(ds.phi, phi_sm)                   # no copy was made
+        True
         """
-        phi = as_float_array(phi, "phi", ndim=3)
-        K, H, d = phi.shape
+        dtype = None if dtype is None else _st._float_dtype(dtype)
+        p = _st.step_major(phi, "phi", 3, dtype)
+        H, K, d = p.shape
         if K == 0:
             raise ValueError("phi has K = 0 trajectories; a dataset needs at least one")
         if H == 0 or d == 0:
-            raise ValueError(f"phi must have H >= 1 steps and d >= 1 features, got {phi.shape}")
-        rewards = as_float_array(rewards, "rewards", ndim=2)
-        if rewards.shape != (K, H):
+            raise ValueError(f"phi must have H >= 1 steps and d >= 1 features, got {(K, H, d)}")
+        r = _st.step_major(rewards, "rewards", 2, np.float64)
+        if r.shape != (H, K):
             raise ValueError(
-                f"rewards must have shape (K, H) = {(K, H)} to match phi, got {rewards.shape}"
+                f"rewards must have shape (K, H) = {(K, H)} to match phi, got {np.shape(rewards)}"
             )
-        next_phi = as_float_array(next_phi, "next_phi", ndim=4, allow_nan=True)
-        if next_phi.shape[:2] != (K, H) or next_phi.shape[3] != d:
+        n = _st.step_major(next_phi, "next_phi", 4, dtype or p.dtype)
+        if n.shape[:2] != (H, K) or n.shape[3] != d:
             raise ValueError(
-                f"next_phi must have shape (K, H, A, d) = ({K}, {H}, A, {d}), got {next_phi.shape}"
+                f"next_phi must have shape (K, H, A, d) = ({K}, {H}, A, {d}), got "
+                f"{np.shape(next_phi)}"
             )
-        A = next_phi.shape[2]
+        A = n.shape[2]
         if A == 0:
             raise ValueError("next_phi has A = 0 actions; at least one action is needed")
-        used = next_phi[:, : H - 1]
-        if not np.isfinite(used).all():
-            raise ValueError(
-                "next_phi contains NaN or infinite entries in steps h < H-1 (only the last "
-                "step's row may be left undefined)"
-            )
-        next_phi[:, H - 1] = np.where(np.isfinite(next_phi[:, H - 1]), next_phi[:, H - 1], 0.0)
         nv = None
         if next_values is not None:
-            nv = as_float_array(next_values, "next_values", ndim=3, allow_nan=True)
-            if nv.shape != (K, H, A):
+            nv = _st.step_major(next_values, "next_values", 3, np.float64)
+            if nv.shape != (H, K, A):
                 raise ValueError(
-                    f"next_values must have shape (K, H, A) = {(K, H, A)}, got {nv.shape}; "
-                    "use NaN where the value must be learned"
+                    f"next_values must have shape (K, H, A) = {(K, H, A)}, got "
+                    f"{np.shape(next_values)}; use NaN where the value must be learned"
                 )
-            nv[:, H - 1] = np.nan
-            if np.isnan(nv).all():
-                nv = None
+        nonneg_phi, nonneg_next, any_known = _st.validate_source(
+            p, r, n, nv, check_simplex, stacklevel=3)
+        extras = _check_extras(K, H, A, states=states, actions=actions, next_states=next_states)
+        known = _st.ArrayField(nv) if nv is not None and any_known else None
+        source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
+                                _st.StoredNext(_st.ArrayField(n), known, nonneg_next),
+                                extras, nonneg_phi)
+        return cls(_source=source)
+
+    @classmethod
+    def from_next_state_table(
+        cls, phi, rewards, next_states, table, known_values=None, *, check_simplex=True,
+        states=None, actions=None, dtype=None,
+    ) -> OfflineDataset:
+        """Build a dataset whose next states index a feature table (finite state spaces).
+
+        Nothing per sample is stored for the next states but their index: the engine
+        computes ``V_{h+1}`` once per state of the table and gathers it by index.
+
+        Parameters
+        ----------
+        phi : array_like (K, H, d)
+            Features of the taken actions.
+        rewards : array_like (K, H)
+        next_states : array_like of int (K, H)
+            Next-state indices into ``table`` (row ``h = H-1`` is never used).
+        table : array_like (S, A, d) or (H, S, A, d)
+            Features of every action at every state; a 4-D table gives step-dependent
+            features, row ``h`` being those of the next states of step ``h`` (for a finite
+            MDP with features ``phi_h``: ``table[h] = phi_{h+1}``).
+        known_values : array_like (S, A), optional
+            Known action values by next state (NaN: learn), e.g. 0 at absorbing fail states.
+        check_simplex, states, actions, dtype
+            As in :meth:`from_features`.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> table = np.array([[[1.0, 0.0], [0.5, 0.5]], [[0.0, 1.0], [0.0, 1.0]]])  # S=2, A=2
+        >>> ds = OfflineDataset.from_next_state_table(
+        ...     table[[[0, 1]], [[1, 0]]], [[0.0, 1.0]], [[1, 1]], table)
+        >>> ds.next_phi[0, 0].tolist()
+        [[0.0, 1.0], [0.0, 1.0]]
+        """
+
+        dtype = None if dtype is None else _st._float_dtype(dtype)
+        p = _st.step_major(phi, "phi", 3, dtype)
+        H, K, d = p.shape
+        if K == 0 or H == 0 or d == 0:
+            raise ValueError(f"phi must have K, H, d >= 1, got {(K, H, d)}")
+        r = _st.step_major(rewards, "rewards", 2, np.float64)
+        if r.shape != (H, K):
+            raise ValueError(f"rewards must have shape (K, H) = {(K, H)}, got {np.shape(rewards)}")
+        tab = as_float_array(table, "table")
+        if tab.ndim not in (3, 4) or tab.shape[-1] != d or (tab.ndim == 4 and tab.shape[0] != H):
+            raise ValueError(
+                f"table must have shape (S, A, d) or (H, S, A, d) with H = {H}, d = {d}, "
+                f"got {tab.shape}")
+        S, A = tab.shape[-3], tab.shape[-2]
+        idx = np.asarray(next_states)
+        if idx.shape != (K, H):
+            raise ValueError(f"next_states must have shape (K, H) = {(K, H)}, got {idx.shape}")
+        if not np.issubdtype(idx.dtype, np.integer):
+            if np.issubdtype(idx.dtype, np.floating) and np.all(idx == np.round(idx)):
+                idx = idx.astype(np.int64)
+            else:
+                raise TypeError("next_states must be integer state indices into table")
+        if idx.size and (idx.min() < 0 or idx.max() >= S):
+            raise ValueError(f"next_states must lie in [0, {S}) (the table's states)")
+        kt = None
+        if known_values is not None:
+            kt = as_float_array(known_values, "known_values", ndim=2, allow_nan=True)
+            if kt.shape != (S, A):
+                raise ValueError(f"known_values must have shape (S, A) = {(S, A)}, got {kt.shape}")
+            if np.isnan(kt).all():
+                kt = None
+        nonneg_phi, _, _ = _st.validate_source(p, r, None, None, check_simplex, stacklevel=3)
         if check_simplex:
-            check_simplex_features(phi, "phi")
-            check_simplex_features(used, "next_phi")
-        extras = {}
-        for name, value in (("states", states), ("actions", actions),
-                            ("next_states", next_states)):
-            if value is None:
-                continue
-            arr = np.asarray(value)
-            if arr.shape[:2] != (K, H):
-                raise ValueError(f"{name} must start with (K, H) = {(K, H)}, got {arr.shape}")
-            if name == "actions":
-                arr = as_index_array(arr, "actions", A, ndim=2)
-            # A private, read-only copy: the caller's array is neither shared nor mutable here.
-            extras[name] = _readonly(np.array(arr, copy=True))
-        return cls(
-            _phi=np.ascontiguousarray(phi.transpose(1, 0, 2)),
-            _rewards=np.ascontiguousarray(rewards.T),
-            _next_phi=np.ascontiguousarray(next_phi.transpose(1, 0, 2, 3)),
-            _next_values=None if nv is None else np.ascontiguousarray(nv.transpose(1, 0, 2)),
-            _extras=extras,
-        )
+            used = tab if tab.ndim == 3 else tab[: max(H - 1, 1)]
+            check_simplex_features(used, "table")
+        extras = _check_extras(K, H, A, states=states, actions=actions, next_states=idx)
+        ix = np.ascontiguousarray(idx.T)
+        source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
+                                _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi)
+        return cls(_source=source)
+
+    @classmethod
+    def from_observations(
+        cls, states, actions, rewards, next_states, feature_map, n_actions: int,
+        next_values=None, *, check_simplex: bool = True,
+    ) -> OfflineDataset:
+        """Stored observations and a feature map evaluated chunk by chunk while fitting.
+
+        The arguments of :meth:`from_transitions`, but no feature is stored: the taken-action
+        features ``feature_map(states[:, h], actions[:, h])`` and every action's features at
+        the next states are computed a chunk of trajectories at a time, each step, and never
+        held for the whole dataset (a step's ``(K, d)`` taken-action features are). Arrays
+        (memory maps included) are kept as step-major views when they are laid out so, else
+        copied once. :meth:`save` stores the observations; :meth:`open` then needs the same
+        ``feature_map``.
+
+        Parameters
+        ----------
+        states, next_states : array_like (K, H, ...)
+            Observations ``s_h`` and ``s_{h+1}`` (row ``h = H-1`` of ``next_states`` is never
+            used).
+        actions : array_like of int (K, H)
+            Taken actions, indices in ``[0, n_actions)``.
+        rewards : array_like (K, H)
+        feature_map : callable
+            ``feature_map(observations (n, ...), actions (n,)) -> (n, d)``.
+        n_actions : int
+        next_values : callable, optional
+            ``next_values(next_states (n, ...)) -> (n, A)``, known action values (NaN: learn).
+        check_simplex : bool, default True
+            Warn when the features of the first chunk of trajectories leave the simplex.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> fmap = lambda x, a: np.stack([x[:, 0] * (a == 0), x[:, 0] * (a == 1),
+        ...                               1 - x[:, 0]], axis=1)
+        >>> rng = np.random.default_rng(0)
+        >>> obs, nxt = rng.random((20, 3, 1)), rng.random((20, 3, 1))
+        >>> ds = OfflineDataset.from_observations(obs, rng.integers(2, size=(20, 3)),
+        ...                                       rng.random((20, 3)), nxt, fmap, 2)
+        >>> ds.phi.shape, ds.next_phi.shape
+        ((20, 3, 3), (20, 3, 2, 3))
+        """
+        if not callable(feature_map):
+            raise TypeError("feature_map must be callable: feature_map(states, actions) -> (n, d)")
+        if next_values is not None and not callable(next_values):
+            raise TypeError("next_values must be callable: next_values(next_states) -> (n, A)")
+        if isinstance(n_actions, bool) or not isinstance(n_actions, int | np.integer):
+            raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
+        if n_actions < 1:
+            raise ValueError(f"n_actions must be >= 1, got {n_actions}")
+        act = np.asarray(actions)
+        if act.ndim != 2:
+            raise ValueError(f"actions must have shape (K, H), got {act.shape}")
+        if not np.issubdtype(act.dtype, np.integer):
+            raise TypeError(f"actions must be integer action indices, got dtype {act.dtype}")
+        K, H = act.shape
+        if K == 0 or H == 0:
+            raise ValueError(f"actions must have K >= 1 and H >= 1, got {act.shape}")
+        obs, nobs = np.asarray(states), np.asarray(next_states)
+        if obs.shape[:2] != (K, H) or nobs.shape[:2] != (K, H):
+            raise ValueError(
+                f"states and next_states must start with (K, H) = {(K, H)} like actions, got "
+                f"{obs.shape} and {nobs.shape}")
+        r = _st.step_major(rewards, "rewards", 2, np.float64)
+        if r.shape != (H, K):
+            raise ValueError(f"rewards must have shape (K, H) = {(K, H)}, got {np.shape(rewards)}")
+        if not all(np.isfinite(r[h]).all() for h in range(H)):
+            raise ValueError("rewards contains NaN or infinite entries; clean the data first")
+        sm = [_st.ArrayField(_st.layout_step_major(x)) for x in (obs, act, nobs)]
+        for h in range(H):
+            for _, _, rows in sm[1].chunks(h, _st.CHUNK):
+                if rows.size and (rows.min() < 0 or rows.max() >= n_actions):
+                    raise ValueError(f"actions must lie in [0, {n_actions}); got values outside")
+        probe = np.asarray(feature_map(sm[0].read(0, 0, 1), sm[1].read(0, 0, 1).astype(np.int64)))
+        if probe.ndim != 2 or probe.shape[0] != 1 or probe.shape[1] < 1:
+            raise ValueError(f"feature_map must return (n, d) for n observations, got "
+                             f"{probe.shape} for one")
+        d = probe.shape[1]
+        phi = _st.MappedField(sm[0], sm[1], feature_map, d)
+        nxt = _st.MapNext(sm[2], feature_map, int(n_actions), d, next_values)
+        if check_simplex:
+            first = phi.read(0, 0, _st.CHUNK)
+            check_simplex_features(first, "phi")
+            if H > 1:
+                check_simplex_features(nxt.features(0, 0, _st.CHUNK), "next_phi")
+        return cls(_source=_st.StepSource(phi, _st.ArrayField(r), nxt, {}))
+
+    @classmethod
+    def from_dask(cls, phi, rewards, next_phi, next_values=None) -> OfflineDataset:
+        """A dataset held as Dask arrays, chunked along trajectories (the ``dask`` extra).
+
+        Takes the shapes of :meth:`from_features` (``phi (K, H, d)``, ...) as Dask arrays;
+        nothing is computed here. Fitting reads one step at a time: the next-state values are
+        computed on the workers, chunk by chunk, and only a step's ``(K, d)`` features and
+        ``K`` values come back. Validate the data before (or build it with
+        :meth:`from_features` and convert). Fits equal the in-memory fits to rounding.
+        """
+        try:
+            import dask.array as da
+        except ImportError as exc:  # pragma: no cover - the extra is installed in CI
+            raise ImportError("OfflineDataset.from_dask needs the 'dask' extra: "
+                              "pip install 'r2pvi[dask]'") from exc
+        arrays = [phi, rewards, next_phi] + ([] if next_values is None else [next_values])
+        for name, a, nd in zip(("phi", "rewards", "next_phi", "next_values"), arrays,
+                               (3, 2, 4, 3), strict=False):
+            if not isinstance(a, da.Array):
+                raise TypeError(f"{name} must be a dask.array.Array, got {type(a).__name__}")
+            if a.ndim != nd:
+                raise ValueError(f"{name} must have {nd} dimensions, got shape {a.shape}")
+        K, H, d = phi.shape
+        if rewards.shape != (K, H) or next_phi.shape[:2] != (K, H) or next_phi.shape[3] != d:
+            raise ValueError("rewards (K, H) and next_phi (K, H, A, d) must match phi (K, H, d)")
+        if next_values is not None and next_values.shape != next_phi.shape[:3]:
+            raise ValueError("next_values must have shape (K, H, A)")
+        chunks = phi.chunks[0]
+
+        def sm(a):  # step-major, chunked along trajectories like phi, whole on other axes
+            a = a.rechunk((chunks,) + tuple(-1 for _ in a.shape[1:]))
+            return a.swapaxes(0, 1)
+
+        nv = None if next_values is None else _st.DaskField(sm(next_values))
+        source = _st.StepSource(_st.DaskField(sm(phi)), _st.DaskField(sm(rewards)),
+                                _st.StoredNext(_st.DaskField(sm(next_phi)), nv))
+        return cls(_source=source)
 
     @classmethod
     def from_transitions(
@@ -330,90 +525,131 @@ class OfflineDataset:
     @property
     def n_trajectories(self) -> int:
         """K, the number of trajectories."""
-        return self._phi.shape[1]
+        return self._source.n_trajectories
 
     @property
     def horizon(self) -> int:
         """H, the number of steps."""
-        return self._phi.shape[0]
+        return self._source.horizon
 
     @property
     def n_features(self) -> int:
         """d, the feature dimension."""
-        return self._phi.shape[2]
+        return self._source.n_features
 
     @property
     def n_actions(self) -> int:
         """A, the number of actions at the next states."""
-        return self._next_phi.shape[2]
+        return self._source.n_actions
+
+    @property
+    def dtype(self) -> np.dtype:
+        """Storage type of the features (float32 or float64); fits accumulate in float64."""
+        return self._source.phi.dtype
+
+    @property
+    def storage(self) -> str:
+        """Where the data lives: ``"memory"``, ``"disk"`` or ``"dask"``."""
+        f = self._source.phi
+        return "disk" if isinstance(f, _st.FileField) else (
+            "dask" if isinstance(f, _st.DaskField) else "memory")
 
     @property
     def phi(self) -> np.ndarray:
-        """Features of the taken actions, (K, H, d) (a read-only view)."""
-        return _readonly(self._phi.transpose(1, 0, 2))
+        """Features of the taken actions, (K, H, d) (a read-only view; a memory map on disk)."""
+        return _readonly(self._source.phi.lazy().swapaxes(0, 1))
 
     @property
     def rewards(self) -> np.ndarray:
         """Rewards, (K, H) (a read-only view)."""
-        return _readonly(self._rewards.T)
+        return _readonly(self._source.rewards.lazy().swapaxes(0, 1))
 
     @property
     def next_phi(self) -> np.ndarray:
-        """Features of every next-state action, (K, H, A, d) (a read-only view)."""
-        return _readonly(self._next_phi.transpose(1, 0, 2, 3))
+        """Features of every next-state action, (K, H, A, d) (a read-only view when stored;
+        computed, and so materialized, when they come from a table or a feature map)."""
+        nxt = self._source.next
+        if isinstance(nxt, _st.StoredNext):
+            return _readonly(nxt.next_phi.lazy().swapaxes(0, 1))
+        out = np.stack([nxt.features(h) for h in range(self.horizon)], axis=1)
+        return _readonly(out)
 
     @property
     def next_values(self) -> np.ndarray:
         """Known next-state action values, (K, H, A), NaN where learned."""
-        if self._next_values is None:
-            return np.full((self.n_trajectories, self.horizon, self.n_actions), np.nan)
-        return _readonly(self._next_values.transpose(1, 0, 2))
+        K, H, A = self.n_trajectories, self.horizon, self.n_actions
+        nxt = self._source.next
+        if not nxt.has_known_values:
+            return np.full((K, H, A), np.nan)
+        out = np.full((K, H, A), np.nan)
+        for h in range(H - 1):  # the last step's row is never used
+            out[:, h] = nxt.known(h)
+        return out
 
     @property
     def nonnegative_next_features(self) -> bool:
         """Whether every next-state feature is >= 0 (computed once, then cached)."""
         if self._nonnegative is None:
-            self._nonnegative = bool((self._next_phi >= 0).all())
+            nxt = self._source.next
+            self._nonnegative = all(
+                bool((nxt.features(h, s, min(s + self._source.chunk, self.n_trajectories))
+                      >= 0).all())
+                for h in range(self.horizon - 1)
+                for s in range(0, self.n_trajectories, self._source.chunk)
+            )
         return self._nonnegative
 
     @property
     def nonnegative_features(self) -> bool:
         """Whether every taken-action feature is >= 0 (computed once, then cached)."""
         if self._nonnegative_phi is None:
-            self._nonnegative_phi = bool((self._phi >= 0).all())
+            self._nonnegative_phi = all(
+                bool((rows >= 0).all()) for h in range(self.horizon)
+                for _, _, rows in self._source.phi.chunks(h, self._source.chunk)
+            )
         return self._nonnegative_phi
 
     @property
     def has_known_values(self) -> bool:
         """Whether any next-state action value is given."""
-        return self._next_values is not None
+        return self._source.next.has_known_values
 
     @property
     def states(self):
         """Observed states (K, H, ...) when built by :meth:`from_transitions`, else None."""
-        return self._extras.get("states")
+        return self._source.extras.get("states")
 
     @property
     def actions(self):
         """Taken action indices (K, H) when built by :meth:`from_transitions`, else None."""
-        return self._extras.get("actions")
+        return self._source.extras.get("actions")
 
     @property
     def next_states(self):
         """Observed next states (K, H, ...) when built by :meth:`from_transitions`, else None."""
-        return self._extras.get("next_states")
+        return self._source.extras.get("next_states")
+
+    @property
+    def _extras(self) -> dict:
+        return self._source.extras
 
     def step(self, h: int):
         """Step-``h`` arrays ``(phi (K,d), rewards (K,), next_phi (K,A,d), next_values)``.
 
         ``next_values`` is ``(K, A)`` with NaN where learned, or None if none is known.
-        ``h`` is 0-based.
+        ``h`` is 0-based. The whole step is read (the engine reads it in chunks instead).
         """
-        nv = None if self._next_values is None else self._next_values[h]
-        return self._phi[h], self._rewards[h], self._next_phi[h], nv
+        src = self._source
+        nv = src.next.known(h) if src.next.has_known_values else None
+        return src.phi_step(h), src.rewards_step(h), src.next.features(h), nv
+
+    def step_phi(self, h: int) -> np.ndarray:
+        """Step ``h``'s taken-action features ``(K, d)`` in float64 (a view when stored so)."""
+        return self._source.phi_step(h)
 
     def subset(self, indices) -> OfflineDataset:
-        """The dataset restricted to the trajectories ``indices`` (for bootstraps, splits)."""
+        """The dataset restricted to the trajectories ``indices`` (for bootstraps, splits);
+        in memory, whatever the storage."""
         idx = np.asarray(indices)
         if idx.dtype == bool:
             if idx.shape != (self.n_trajectories,):
@@ -425,16 +661,7 @@ class OfflineDataset:
         if idx.ndim != 1 or idx.size == 0:
             raise ValueError("indices must select at least one trajectory")
         idx = as_index_array(idx, "indices", self.n_trajectories, ndim=1)
-        extras = {k: _readonly(v[idx]) for k, v in self._extras.items()}
-        return OfflineDataset(
-            _phi=np.ascontiguousarray(self._phi[:, idx]),
-            _rewards=np.ascontiguousarray(self._rewards[:, idx]),
-            _next_phi=np.ascontiguousarray(self._next_phi[:, idx]),
-            _next_values=None
-            if self._next_values is None
-            else np.ascontiguousarray(self._next_values[:, idx]),
-            _extras=extras,
-        )
+        return OfflineDataset(_source=self._source.take(idx))
 
     def __repr__(self) -> str:
         return (
@@ -443,8 +670,11 @@ class OfflineDataset:
         )
 
     # ------------------------------------------------------------------ I/O
-    def save(self, path):
-        """Save to a versioned ``.npz`` file (no pickle); returns the path written.
+    def save(self, path, *, dtype=None, overwrite: bool = False) -> Path:
+        """Save in the on-disk format: a directory of step-major ``.npy`` files and a JSON
+        manifest (format version 2), written in a temporary directory and renamed into
+        place. A path ending in ``.npz`` writes the legacy single-file format (version 1).
+        Returns the path written. Open it lazily with :meth:`open` (any size).
 
         Examples
         --------
@@ -453,10 +683,17 @@ class OfflineDataset:
         >>> ds = OfflineDataset.from_features(np.ones((2, 1, 1)), np.zeros((2, 1)),
         ...                                   np.ones((2, 1, 1, 1)))
         >>> with tempfile.TemporaryDirectory() as tmp:
-        ...     p = ds.save(os.path.join(tmp, "data.npz"))
-        ...     OfflineDataset.load(p).n_trajectories
-        2
+        ...     p = ds.save(os.path.join(tmp, "data"))
+        ...     sorted(os.listdir(p)), OfflineDataset.open(p).n_trajectories
+        (['manifest.json', 'next_phi.npy', 'phi.npy', 'rewards.npy'], 2)
         """
+        p = Path(os.fspath(path))
+        if p.suffix == ".npz":
+            return self._save_npz(p)
+        dtype = None if dtype is None else _st._float_dtype(dtype)
+        return _st.write_directory(self._source, p, dtype=dtype, overwrite=overwrite)
+
+    def _save_npz(self, path):
         arrays = {
             "phi": self.phi,
             "rewards": self.rewards,
@@ -471,8 +708,21 @@ class OfflineDataset:
         return save_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION, arrays, {})
 
     @classmethod
+    def open(cls, path, *, feature_map=None) -> OfflineDataset:
+        """Open a dataset directory written by :meth:`save` or :class:`~r2pvi.DatasetWriter`
+        lazily: only the headers are read; a fit reads one step at a time, in chunks.
+        ``feature_map`` is needed (and only then) for a dataset stored as observations
+        (see :meth:`from_observations`)."""
+        return cls(_source=_st.open_directory(path, feature_map))
+
+    @classmethod
     def load(cls, path) -> OfflineDataset:
-        """Load a dataset written by :meth:`save`."""
+        """Load a dataset written by :meth:`save` into memory: a directory (format 2) or a
+        legacy ``.npz`` file (format 1)."""
+        p = Path(os.fspath(path))
+        if p.is_dir():
+            src = _st.open_directory(p)
+            return cls(_source=src.take(np.arange(src.n_trajectories)))
         arrays, _ = load_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION)
         known = {"phi", "rewards", "next_phi", "next_values"}
         known |= {"extra_" + k for k in ("states", "actions", "next_states")}
@@ -496,7 +746,24 @@ class OfflineDataset:
             raise file_error(path, None, f"holds invalid data: {exc}") from None
 
 
-def _readonly(a: np.ndarray) -> np.ndarray:
+def _check_extras(K, H, A, **given) -> dict:
+    extras = {}
+    for name, value in given.items():
+        if value is None:
+            continue
+        arr = np.asarray(value)
+        if arr.shape[:2] != (K, H):
+            raise ValueError(f"{name} must start with (K, H) = {(K, H)}, got {arr.shape}")
+        if name == "actions":
+            arr = as_index_array(arr, "actions", A, ndim=2)
+        # A private, read-only copy: the caller's array is neither shared nor mutable here.
+        extras[name] = _readonly(np.array(arr, copy=True))
+    return extras
+
+
+def _readonly(a):
+    if not isinstance(a, np.ndarray):
+        return a  # a Dask array: immutable already
     v = a.view()
     v.flags.writeable = False
     return v

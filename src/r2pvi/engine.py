@@ -140,6 +140,18 @@ def _max_over_actions(q: np.ndarray) -> np.ndarray:
     return v
 
 
+class _NextValue:
+    """``V_{h+1} = max_a Q_{h+1}`` on a chunk of next-state features ``(n, A, d)``; the step
+    source calls it chunk by chunk (or once on a feature table). A class, not a closure, so
+    that Dask can ship it to the workers."""
+
+    def __init__(self, weights_h, kind, beta, inv_diag, chol, upper):
+        self.args = (weights_h, kind, beta, inv_diag, chol, upper)
+
+    def __call__(self, feats, known, nonneg):
+        return _max_over_actions(_q_step(feats, *self.args, known, nonneg))
+
+
 def q_values_from_model(model: FittedModel, phi_all, h: int, *, penalty, beta, r_max,
                         known_values=None) -> np.ndarray:
     """``Q_h`` of a fitted model at features ``phi_all (n, A, d)`` -> ``(n, A)``."""
@@ -183,17 +195,19 @@ def backward_induction(
         Regression weights ``1 / sigma_h^2`` (variance-aware variants); None means 1.
     """
     H, d = dataset.horizon, dataset.n_features
-    nonneg = dataset.nonnegative_next_features
-    nonneg_phi = dataset.nonnegative_features
+    source = dataset._source  # the step-major data: in memory, on disk or in Dask arrays
+    nonneg_phi = dataset._nonnegative_phi  # None: checked on a step's features when needed
     weights = np.zeros((H, d))
     thetas = np.zeros((H, d))
     chols = np.zeros((H, d, d))
     inv_diags = np.zeros((H, d))
     next_state_values = np.zeros((H, dataset.n_trajectories))
     v_upper = H * r_max
+    step_buffer = None  # one step's (K, d) float64 features, reused when they are read
     try:
         for h in range(H - 1, -1, -1):
-            phi, rewards, next_phi, next_known = dataset.step(h)
+            phi = step_buffer = source.phi_step(h, step_buffer)  # next-state data: by chunk
+            rewards = source.rewards_step(h)
             sw = None if sample_weights is None else sample_weights[h]
             chol = cholesky_gram(phi, gamma, sw)
             E = RidgeExpectation(phi, chol, sw, nonneg_phi)
@@ -201,18 +215,9 @@ def backward_induction(
             if h == H - 1:
                 w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for every divergence
             else:
-                q_next = _q_step(
-                    next_phi,
-                    weights[h + 1],
-                    penalty,
-                    beta,
-                    inv_diags[h + 1],
-                    chols[h + 1],
-                    (H - h - 1) * r_max,
-                    next_known,
-                    nonneg,
-                )
-                v_next = _max_over_actions(q_next)
+                v_next = source.next_state_values(h, _NextValue(
+                    weights[h + 1], penalty, beta, inv_diags[h + 1], chols[h + 1],
+                    (H - h - 1) * r_max))
                 next_state_values[h] = v_next
                 w = rule(E, v_next, StepContext(h, H, r_max, v_upper))
             weights[h] = theta + w

@@ -45,7 +45,7 @@ def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float
     weights = np.ones((H, K))
     for h in range(H - 1):  # V_H = 0: sigma_{H-1}^2 = max(1, 0) = 1
         v = first.next_state_values[h]
-        phi = dataset.step(h)[0]
+        phi = dataset.step_phi(h)
         z = RidgeExpectation(phi, first.gram_cholesky[h])(np.stack([v, v * v], axis=1))  # (d, 2)
         pred = phi @ z
         mean = np.clip(pred[:, 0], 0.0, v_upper)

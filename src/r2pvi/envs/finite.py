@@ -8,7 +8,7 @@ import numpy as np
 
 from .._validation import as_float_array, as_index_array, check_scalar
 from ..data import OfflineDataset
-from ._dataset import Trajectories, dataset_with_transitions
+from ._dataset import Trajectories
 from ._sampling import as_generator, check_count, sample_categorical
 from .policies import policy_table
 
@@ -305,14 +305,17 @@ class FiniteLinearMDP:
         next_steps = np.minimum(steps + 1, H - 1)  # the row of h = H-1 is never used
         if self._phi.ndim == 4:
             phi = self._phi[steps, states, actions]
-            next_phi = self._phi[next_steps, next_states]
+            table = self._phi[next_steps]  # table[h]: the features of step h's next states
         else:
             phi = self._phi[states, actions]
-            next_phi = self._phi[next_states]
-        next_values = self.known_values[next_states] if self._fail_states else None
-        return dataset_with_transitions(
-            phi, rewards, next_phi, next_values, states, actions, next_states,
+            table = self._phi
+        # Next states are indices into the (S, A, d) feature table: nothing per sample is
+        # stored, and V_{h+1} is computed once per state and gathered by index.
+        return OfflineDataset.from_next_state_table(
+            phi, rewards, next_states, table,
+            self.known_values if self._fail_states else None,
             check_simplex=False,  # validated in the constructor
+            states=states, actions=actions,
         )
 
     # ------------------------------------------------------------------ ecosystem

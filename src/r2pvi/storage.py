@@ -1,0 +1,1034 @@
+"""Step-major storage: where a dataset's numbers live, read one step at a time.
+
+Every step of the backward induction reads only that step's data. A dataset is therefore a
+*step source*: fields of shape ``(H, K, ...)`` (step-major) that can be read one step and
+one range of trajectories at a time, wherever they are:
+
+- :class:`ArrayField` — a NumPy array (or a read-only view of the caller's array, no copy);
+- :class:`FileField` — a ``.npy`` file of the on-disk format, read chunk by chunk with
+  ``pread`` (nothing is memory-mapped while fitting, so the resident memory stays at one
+  step's worth; :meth:`FileField.lazy` gives a memory map for browsing);
+- :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
+
+Next-state features are computed where they need not be stored (:class:`StoredNext`,
+:class:`TableNext` for finite MDPs, :class:`MapNext` for stored observations and a feature
+map), and the engine asks for the next-state values ``V_{h+1}`` chunk by chunk through
+:meth:`StepSource.next_state_values`.
+
+The on-disk format (format version 2) is a directory::
+
+    manifest.json        {"kind": "r2pvi.OfflineDataset", "format_version": 2, ...}
+    phi.npy              (H, K, d)     float32 or float64, step-major
+    rewards.npy          (H, K)
+    next_phi.npy         (H, K, A, d)  stored next-state features, or
+    next_index.npy       (H, K)        next-state indices into
+    next_table.npy       (S, A, d) or (H, S, A, d)   a feature table (row h of a 4-D table
+                                       holds the features used for the next states of step h)
+    next_values.npy      (H, K, A)     known next-state action values (NaN: learn); optional
+    next_table_values.npy (S, A)       known values by next state (table form); optional
+    extra_<name>.npy     (K, H, ...)   observed states, actions, next states; optional
+
+Plain ``.npy`` files (no pickle, ``allow_pickle=False`` on every read), described by a JSON
+manifest with the shapes, dtypes and cached facts (non-negativity of the features).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+import warnings
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "FORMAT_VERSION",
+    "CHUNK",
+    "ArrayField",
+    "FileField",
+    "DaskField",
+    "StoredNext",
+    "TableNext",
+    "MapNext",
+    "MappedField",
+    "StepSource",
+    "DatasetWriter",
+    "open_directory",
+    "write_directory",
+    "step_major",
+    "validate_source",
+]
+
+FORMAT_VERSION = 2
+KIND = "r2pvi.OfflineDataset"
+MANIFEST = "manifest.json"
+CHUNK = 1 << 13  # trajectories per chunk when streaming a step (buffers of a few MB)
+
+
+def _float_dtype(dtype) -> np.dtype:
+    """float32 or float64, else a ValueError naming the choices."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    return dt
+
+
+class SimplexFeatureWarning(UserWarning):
+    """Features break the paper's simplex assumption (phi_i >= 0 and sum_i phi_i = 1)."""
+
+
+# --------------------------------------------------------------------------- fields
+class Field:
+    """A step-major array ``(H, K, ...)`` read by step and range of trajectories."""
+
+    shape: tuple
+    dtype: np.dtype
+
+    def read(self, h: int, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Rows ``[h, start:stop]`` as an ndarray (may be a read-only view)."""
+        raise NotImplementedError
+
+    def lazy(self):
+        """The whole field ``(H, K, ...)`` without reading it (a view or memory map)."""
+        raise NotImplementedError
+
+    def take(self, idx: np.ndarray) -> np.ndarray:
+        """The trajectories ``idx`` of every step, ``(H, len(idx), ...)``, in memory."""
+        return np.stack([self.read(h)[idx] for h in range(self.shape[0])])
+
+    def chunks(self, h: int, chunk: int):
+        """``(start, stop, rows)`` over the trajectories of step ``h``."""
+        K = self.shape[1]
+        for s in range(0, K, chunk):
+            e = min(K, s + chunk)
+            yield s, e, self.read(h, s, e)
+
+
+class ArrayField(Field):
+    """A field held in a NumPy array (kept as a read-only view; never copied)."""
+
+    def __init__(self, array: np.ndarray):
+        view = array.view() if isinstance(array, np.ndarray) else np.asarray(array)
+        view.flags.writeable = False
+        self.array = view
+        self.shape, self.dtype = view.shape, view.dtype
+
+    def read(self, h, start=0, stop=None):
+        return self.array[h, start:stop]
+
+    def lazy(self):
+        return self.array
+
+    def take(self, idx):
+        return self.array[:, idx]
+
+
+class FileField(Field):
+    """A field in a ``.npy`` file, read with ``pread`` into fresh arrays (no memory map)."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        with open(self.path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+            else:
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+            self.offset = fh.tell()
+        if fortran or dtype.hasobject:
+            raise ValueError(f"{self.path} is not a C-ordered numeric .npy file")
+        self.shape, self.dtype = tuple(shape), np.dtype(dtype)
+        self._row = int(np.prod(self.shape[2:], dtype=np.int64)) * self.dtype.itemsize
+        size = self.offset + int(np.prod(self.shape, dtype=np.int64)) * self.dtype.itemsize
+        if os.path.getsize(self.path) < size:
+            raise ValueError(f"{self.path} is truncated: expected {size} bytes")
+        self._fd: int | None = None
+
+    def _file(self) -> int:
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDONLY)
+        return self._fd
+
+    def read(self, h, start=0, stop=None, out=None):
+        K = self.shape[1]
+        stop = K if stop is None else min(stop, K)
+        shape = (stop - start,) + self.shape[2:]
+        if out is None or out.shape != shape or out.dtype != self.dtype:
+            out = np.empty(shape, dtype=self.dtype)
+        nbytes = out.nbytes
+        if nbytes:
+            pos = self.offset + (h * K + start) * self._row
+            view = memoryview(out.reshape(-1).view(np.uint8))
+            done = 0
+            while done < nbytes:  # pread may return less than asked for
+                got = os.preadv(self._file(), [view[done:]], pos + done)
+                if got <= 0:
+                    raise OSError(f"unexpected end of {self.path}")
+                done += got
+        return out
+
+    def lazy(self):
+        return np.load(self.path, mmap_mode="r", allow_pickle=False)
+
+    def take(self, idx):
+        return np.asarray(self.lazy()[:, idx])
+
+    def close(self):
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __del__(self):  # pragma: no cover - interpreter shutdown
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def __getstate__(self):  # picklable for process pools: reopen the file there
+        state = dict(self.__dict__)
+        state["_fd"] = None
+        return state
+
+
+class DaskField(Field):
+    """A field held as a Dask array ``(H, K, ...)`` chunked along trajectories."""
+
+    def __init__(self, array):
+        self.array = array
+        self.shape, self.dtype = tuple(array.shape), np.dtype(array.dtype)
+
+    def read(self, h, start=0, stop=None):
+        return np.asarray(self.array[h, start:stop].compute())
+
+    def lazy(self):
+        return self.array
+
+    def take(self, idx):
+        return np.asarray(self.array[:, np.asarray(idx)].compute())
+
+    def chunks(self, h, chunk):
+        # Dask's own chunks along trajectories, computed where the data is.
+        bounds = np.cumsum((0,) + tuple(self.array.chunks[1]))
+        for s, e in zip(bounds[:-1], bounds[1:], strict=True):
+            yield int(s), int(e), self.read(h, int(s), int(e))
+
+
+class MappedField(Field):
+    """Taken-action features computed from stored observations and actions by a feature map:
+    ``read(h, s, e) = feature_map(observations[h, s:e], actions[h, s:e])`` ``(n, d)``."""
+
+    def __init__(self, observations: Field, actions: Field, feature_map, n_features: int):
+        self.observations, self.actions, self.feature_map = observations, actions, feature_map
+        H, K = observations.shape[:2]
+        self.shape, self.dtype = (H, K, int(n_features)), np.dtype(np.float64)
+
+    def read(self, h, start=0, stop=None):
+        obs = self.observations.read(h, start, stop)
+        act = np.asarray(self.actions.read(h, start, stop), dtype=np.int64)
+        out = np.asarray(self.feature_map(obs, act), dtype=np.float64)
+        if out.shape != (obs.shape[0], self.shape[2]):
+            raise ValueError(f"feature_map returned shape {out.shape} for {obs.shape[0]} "
+                             f"observations; expected (n, d) = ({obs.shape[0]}, {self.shape[2]})")
+        return out
+
+    def lazy(self):
+        return np.stack([self.read(h) for h in range(self.shape[0])])
+
+    def take(self, idx):
+        return self.lazy()[:, idx]
+
+
+# --------------------------------------------------------------------------- next states
+class NextStates:
+    """Where the next-state features come from; the engine only asks for values."""
+
+    n_actions: int
+    nonnegative: bool | None = None  # every used next-state feature >= 0 (None: unknown)
+    has_known_values: bool = False
+
+    def features(self, h, start=0, stop=None) -> np.ndarray:
+        """Features of every action at the next states ``(n, A, d)`` (float64 or float32)."""
+        raise NotImplementedError
+
+    def known(self, h, start=0, stop=None):
+        """Known next-state action values ``(n, A)`` (NaN: learn), or None."""
+        return None
+
+    def values(self, h, qmax, n, chunk) -> np.ndarray:
+        """``V_{h+1}`` at the K next states: ``qmax(features, known, nonneg) -> (n,)`` by chunk."""
+        out = np.empty(n)
+        for s in range(0, n, chunk):
+            e = min(n, s + chunk)
+            feats = _as_float64(self.features(h, s, e))
+            nonneg = self.nonnegative
+            if nonneg is None:
+                nonneg = bool((feats >= 0).all())
+            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+        return out
+
+    def take(self, idx) -> NextStates:
+        raise NotImplementedError
+
+
+class StoredNext(NextStates):
+    """Stored next-state features ``(H, K, A, d)`` and optional known values ``(H, K, A)``."""
+
+    def __init__(self, next_phi: Field, next_values: Field | None = None, nonnegative=None):
+        self.next_phi, self.next_values = next_phi, next_values
+        self.n_actions = next_phi.shape[2]
+        self.nonnegative = nonnegative
+        self.has_known_values = next_values is not None
+
+    def features(self, h, start=0, stop=None):
+        return self.next_phi.read(h, start, stop)
+
+    def known(self, h, start=0, stop=None):
+        return None if self.next_values is None else _as_float64(
+            self.next_values.read(h, start, stop))
+
+    def values(self, h, qmax, n, chunk):
+        field = self.next_phi
+        if isinstance(field, DaskField):
+            return _dask_values(self, h, qmax)
+        # Two reused buffers (a chunk read in the storage type, then cast to float64): no
+        # fresh allocation, so no page faults, per chunk.
+        out = np.empty(n)
+        shape = (min(chunk, n),) + field.shape[2:]
+        if isinstance(field, FileField):
+            reads = _prefetched(field, h, n, chunk, shape)
+        else:
+            reads = ((s, min(n, s + chunk), field.read(h, s, min(n, s + chunk)))
+                     for s in range(0, n, chunk))
+        f64 = np.empty(shape)
+        for s, e, rows in reads:
+            if rows.dtype == np.float64 and rows.flags.c_contiguous:
+                feats = rows
+            else:
+                feats = f64[: e - s]
+                np.copyto(feats, rows)
+            nonneg = self.nonnegative
+            if nonneg is None:
+                nonneg = bool((feats >= 0).all())
+            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+        return out
+
+    def take(self, idx):
+        nv = None if self.next_values is None else ArrayField(self.next_values.take(idx))
+        return StoredNext(ArrayField(self.next_phi.take(idx)), nv, self.nonnegative)
+
+
+class TableNext(NextStates):
+    """Next-state indices ``(H, K)`` into a feature table (finite MDPs): nothing per sample.
+
+    ``table`` is ``(S, A, d)``, or ``(H, S, A, d)`` with row ``h`` the features of the next
+    states of step ``h``; ``known_table (S, A)`` gives known values by next state. ``V_{h+1}``
+    is computed once per state and gathered by index (when ``S <= K``).
+    """
+
+    def __init__(self, index: Field, table: np.ndarray, known_table: np.ndarray | None = None):
+        self.index, self.table, self.known_table = index, table, known_table
+        self.n_actions = table.shape[-2]
+        used = table if table.ndim == 3 else table[: max(index.shape[0] - 1, 1)]
+        self.nonnegative = bool((used >= 0).all())
+        self.has_known_values = known_table is not None
+
+    def _table(self, h):
+        return self.table if self.table.ndim == 3 else self.table[h]
+
+    def features(self, h, start=0, stop=None):
+        return self._table(h)[self.index.read(h, start, stop)]
+
+    def known(self, h, start=0, stop=None):
+        if self.known_table is None:
+            return None
+        return self.known_table[self.index.read(h, start, stop)]
+
+    def values(self, h, qmax, n, chunk):
+        table = _as_float64(self._table(h))
+        if table.shape[0] > n:  # more states than samples: evaluate the sampled ones only
+            return super().values(h, qmax, n, chunk)
+        v_table = qmax(table, self.known_table, self.nonnegative)
+        out = np.empty(n)
+        for s, e, idx in self.index.chunks(h, chunk):
+            np.take(v_table, idx, out=out[s:e])
+        return out
+
+    def take(self, idx):
+        return TableNext(ArrayField(self.index.take(idx)), self.table, self.known_table)
+
+
+class MapNext(NextStates):
+    """Stored next observations ``(H, K, ...)`` and a feature map evaluated chunk by chunk.
+
+    ``feature_map(observations (n, ...), actions (n,)) -> (n, d)``; ``known_values``, when
+    given, maps next observations ``(n, ...)`` to known action values ``(n, A)`` (NaN: learn).
+    """
+
+    def __init__(self, observations: Field, feature_map, n_actions: int, n_features: int,
+                 known_values=None):
+        self.observations, self.feature_map = observations, feature_map
+        self.n_actions, self.n_features = int(n_actions), int(n_features)
+        self.known_values = known_values
+        self.has_known_values = known_values is not None
+        self.nonnegative = None
+
+    def features(self, h, start=0, stop=None):
+        obs = self.observations.read(h, start, stop)
+        n = obs.shape[0]
+        out = np.empty((n, self.n_actions, self.n_features))
+        for a in range(self.n_actions):
+            f = np.asarray(self.feature_map(obs, np.full(n, a)), dtype=float)
+            if f.shape != (n, self.n_features):
+                raise ValueError(
+                    f"feature_map returned shape {f.shape} for {n} next observations; "
+                    f"expected (n, d) = ({n}, {self.n_features})")
+            out[:, a] = f
+        return out
+
+    def known(self, h, start=0, stop=None):
+        if self.known_values is None:
+            return None
+        if isinstance(self.known_values, Field):  # stored known values (H, K, A)
+            return _as_float64(self.known_values.read(h, start, stop))
+        obs = self.observations.read(h, start, stop)
+        kv = np.asarray(self.known_values(obs), dtype=float)
+        if kv.shape != (obs.shape[0], self.n_actions):
+            raise ValueError(f"known_values returned shape {kv.shape}, expected (n, A)")
+        return kv
+
+    def take(self, idx):
+        kv = self.known_values
+        if isinstance(kv, Field):
+            kv = ArrayField(kv.take(idx))
+        return MapNext(ArrayField(self.observations.take(idx)), self.feature_map,
+                       self.n_actions, self.n_features, kv)
+
+
+_POOL = None
+
+
+def _reader_pool():
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = ThreadPoolExecutor(1, thread_name_prefix="r2pvi-read")
+    return _POOL
+
+
+def _prefetched(field: FileField, h, n, chunk, shape):
+    """``(start, stop, rows)`` over step ``h`` with ``rows`` in float64: a reader thread reads
+    (``pread``) and casts the next chunk (both release the GIL) while the caller computes on
+    this one. Two pairs of buffers, reused; ``rows`` is valid until the next iteration."""
+    f64 = [np.empty(shape), np.empty(shape)]
+    raw = f64 if field.dtype == np.float64 else [np.empty(shape, field.dtype) for _ in f64]
+    starts = list(range(0, n, chunk))
+    pool = _reader_pool()
+
+    def job(i):
+        s = starts[i]
+        e = min(n, s + chunk)
+        rows = field.read(h, s, e, out=raw[i % 2][: e - s])
+        if rows.dtype == np.float64:
+            return rows
+        out = f64[i % 2][: e - s]
+        np.copyto(out, rows)
+        return out
+
+    pending = pool.submit(job, 0)
+    for i, s in enumerate(starts):
+        rows = pending.result()
+        if i + 1 < len(starts):
+            pending = pool.submit(job, i + 1)  # writes the other pair of buffers
+        yield s, min(n, s + chunk), rows
+
+
+def _dask_values(nxt: StoredNext, h, qmax):
+    """Next-state values computed on the Dask workers, one task per trajectory chunk."""
+    import dask.array as da
+
+    feats = nxt.next_phi.array[h]
+    nonneg = nxt.nonnegative
+
+    def block(f, k=None):
+        f = np.asarray(f, dtype=np.float64)
+        nn = bool((f >= 0).all()) if nonneg is None else nonneg
+        return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64), nn)
+
+    if nxt.next_values is None:
+        v = da.map_blocks(block, feats, drop_axis=[1, 2], dtype=np.float64)
+    else:
+        kv = nxt.next_values.array[h].rechunk((feats.chunks[0], -1))
+        v = da.map_blocks(block, feats, kv[:, :, None], drop_axis=[1, 2], dtype=np.float64)
+    return np.asarray(v.compute(), dtype=np.float64)
+
+
+def _as_float64(a):
+    if a is None:
+        return None
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- the source
+class StepSource:
+    """The per-step provider behind an :class:`~r2pvi.OfflineDataset`.
+
+    ``phi (H, K, d)`` and ``rewards (H, K)`` fields, a :class:`NextStates`, trajectory-major
+    extras and cached facts. The engine calls :meth:`phi_step`, :meth:`rewards_step` and
+    :meth:`next_state_values`; nothing else of the data is read while fitting.
+    """
+
+    def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
+                 nonnegative_phi: bool | None = None, chunk: int = CHUNK):
+        self.phi, self.rewards, self.next = phi, rewards, nxt
+        self.extras = dict(extras or {})
+        self.nonnegative_phi = nonnegative_phi
+        self.chunk = int(chunk)
+        self.horizon, self.n_trajectories, self.n_features = phi.shape
+
+    @property
+    def n_actions(self) -> int:
+        return self.next.n_actions
+
+    def phi_step(self, h: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Step ``h``'s taken-action features ``(K, d)`` as float64: a view when they are
+        stored so in memory, else written into ``out`` (a reused buffer) or a new array."""
+        field = self.phi
+        if isinstance(field, DaskField) or (isinstance(field, ArrayField) and (
+                field.dtype == np.float64 or out is None)):
+            return _as_float64(field.read(h))
+        shape = (self.n_trajectories, self.n_features)
+        if out is None or out.shape != shape or out.dtype != np.float64:
+            out = np.empty(shape)
+        if isinstance(field, ArrayField):
+            np.copyto(out, field.read(h))
+            return out
+        if isinstance(field, FileField):
+            chunk_shape = (min(self.chunk, shape[0]), shape[1])
+            for s, e, rows in _prefetched(field, h, shape[0], self.chunk, chunk_shape):
+                out[s:e] = rows
+            return out
+        for s in range(0, shape[0], self.chunk):
+            e = min(shape[0], s + self.chunk)
+            out[s:e] = field.read(h, s, e)
+        return out
+
+    def rewards_step(self, h: int) -> np.ndarray:
+        return _as_float64(self.rewards.read(h))
+
+    def next_state_values(self, h: int, qmax) -> np.ndarray:
+        """``V_{h+1}`` at the K sampled next states; ``qmax(feats (n, A, d), known, nonneg)``."""
+        return self.next.values(h, qmax, self.n_trajectories, self.chunk)
+
+    def take(self, idx) -> StepSource:
+        extras = {}
+        for k, v in self.extras.items():
+            extras[k] = np.asarray(v[idx])
+            extras[k].flags.writeable = False
+        phi = self.phi
+        phi = MappedField(ArrayField(phi.observations.take(idx)),
+                          ArrayField(phi.actions.take(idx)), phi.feature_map,
+                          phi.shape[2]) if isinstance(phi, MappedField) else ArrayField(
+                              phi.take(idx))
+        return StepSource(phi, ArrayField(self.rewards.take(idx)),
+                          self.next.take(idx), extras, self.nonnegative_phi, self.chunk)
+
+
+# --------------------------------------------------------------------------- validation
+def simplex_flags(x: np.ndarray, atol: float = 1e-8) -> tuple[bool, bool]:
+    """``(negative entries, rows not summing to 1)`` of feature rows (last axis)."""
+    if x.size == 0:
+        return False, False
+    return bool((x < -atol).any()), bool((np.abs(x.sum(axis=-1) - 1.0) > 1e-6).any())
+
+
+def warn_simplex(name: str, negative: bool, off_sum: bool, stacklevel: int = 3) -> bool:
+    """Warn with :class:`SimplexFeatureWarning` when a flag is set; True when on the simplex."""
+    if not (negative or off_sum):
+        return True
+    what = " and ".join(
+        w for w, bad in (("negative entries", negative), ("rows not summing to 1", off_sum))
+        if bad
+    )
+    warnings.warn(
+        f"{name} has {what}: the paper's simplex assumption (phi_i >= 0, sum_i phi_i = 1) "
+        "does not hold. The algorithms still run; the d-rectangular guarantees do not apply.",
+        SimplexFeatureWarning,
+        stacklevel=stacklevel + 1,
+    )
+    return False
+
+
+def step_major(x, name: str, ndim: int, dtype=None) -> np.ndarray:
+    """``x (K, H, ...)`` as a C-contiguous step-major float array ``(H, K, ...)``.
+
+    No copy when ``x`` already is one in memory (e.g. ``a.transpose(1, 0, ...)`` of a
+    C-contiguous ``(H, K, ...)`` array of float32 or float64); otherwise exactly one.
+    """
+    raw = np.asarray(x) if not isinstance(x, str) else None
+    if raw is None or raw.dtype.kind not in "biuf":
+        if raw is not None and raw.dtype.kind == "c":
+            raise TypeError(f"{name} must be real, got a complex array")
+        kind = type(x).__name__ if raw is None else f"an array of dtype {raw.dtype}"
+        raise TypeError(f"{name} must be a numeric (float) array, got {kind}")
+    if raw.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {raw.shape}")
+    target = np.dtype(dtype) if dtype is not None else (
+        raw.dtype if raw.dtype in (np.float32, np.float64) else np.dtype(np.float64))
+    sm = raw.swapaxes(0, 1)
+    if sm.dtype == target and sm.flags.c_contiguous:
+        return sm
+    return np.ascontiguousarray(sm, dtype=target)
+
+
+def layout_step_major(x: np.ndarray) -> np.ndarray:
+    """``x (K, H, ...)`` as a C-contiguous ``(H, K, ...)`` array of any dtype: a view when
+    it already is one (e.g. a transposed memory map), else one copy."""
+    sm = np.asarray(x).swapaxes(0, 1)
+    return sm if sm.flags.c_contiguous else np.ascontiguousarray(sm)
+
+
+def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
+    """Validate one chunk of step-major rows; returns ``(phi, next_phi)`` simplex flags
+    and non-negativity: ``(neg_phi, off_phi, neg_next, off_next, nonneg_phi, nonneg_next)``.
+
+    ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used.
+    """
+    for name, x in (("phi", phi), ("rewards", rewards)):
+        if not np.isfinite(x).all():
+            raise ValueError(f"{name} contains {int(np.count_nonzero(~np.isfinite(x)))} NaN or "
+                             "infinite entries; clean the data first")
+    if next_values is not None and not last_step and np.isinf(next_values).any():
+        raise ValueError(f"next_values contains {int(np.count_nonzero(np.isinf(next_values)))} "
+                         "infinite entries; use NaN where the value must be learned")
+    flags = simplex_flags(phi)
+    nonneg_phi = bool((phi >= 0).all())
+    if last_step or next_phi is None:
+        return flags + (False, False, nonneg_phi, True)
+    finite = np.isfinite(next_phi).all(axis=-1)
+    if not finite.all():
+        # An action whose value is known needs no features: its row may be left NaN.
+        known = np.zeros(finite.shape, bool) if next_values is None else ~np.isnan(next_values)
+        if not (finite | known).all():
+            raise ValueError(
+                "next_phi contains NaN or infinite entries in steps h < H-1 where no value is "
+                "known (only the last step's row and actions with a known next_values entry "
+                "may be left undefined)"
+            )
+    # NaN rows (known values) count as neither negative nor off the simplex.
+    return flags + simplex_flags(next_phi) + (nonneg_phi, not bool((next_phi < 0).any()))
+
+
+def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chunk=CHUNK,
+                    stacklevel=3):
+    """Validate step-major arrays chunk by chunk (no full-size temporaries).
+
+    Returns ``(nonnegative_phi, nonnegative_next_phi, any_known)``.
+    """
+    H, K, _ = phi.shape
+    acc = [False, False, False, False, True, True]
+    any_known = False
+    for h in range(H):
+        last = h == H - 1
+        for s in range(0, K, chunk):
+            e = min(K, s + chunk)
+            nv = None if next_values is None else next_values[h, s:e]
+            try:
+                flags = check_features_chunk(
+                    phi[h, s:e], rewards[h, s:e],
+                    None if next_phi is None else next_phi[h, s:e], nv, last)
+            except ValueError as exc:
+                raise _counted(exc, phi, rewards, next_values, chunk) from None
+            for i in range(4):
+                acc[i] = acc[i] or flags[i]
+            acc[4] = acc[4] and flags[4]
+            acc[5] = acc[5] and flags[5]
+            if nv is not None and not last and not any_known:
+                any_known = bool((~np.isnan(nv)).any())
+    if check_simplex:
+        warn_simplex("phi", acc[0], acc[1], stacklevel)
+        if next_phi is not None:
+            warn_simplex("next_phi", acc[2], acc[3], stacklevel)
+    return acc[4], acc[5], any_known
+
+
+def _counted(exc: ValueError, phi, rewards, next_values, chunk) -> ValueError:
+    """The error of one chunk, with the count of bad entries over the whole field."""
+    msg = str(exc)
+    name = msg.split(" ", 1)[0]
+    field = {"phi": phi, "rewards": rewards, "next_values": next_values}.get(name)
+    if field is None or " contains " not in msg:
+        return exc
+    bad = np.isinf if name == "next_values" else (lambda x: ~np.isfinite(x))
+    H, K = field.shape[:2]
+    n = sum(int(np.count_nonzero(bad(field[h, s:s + chunk])))
+            for h in range(H - (name == "next_values")) for s in range(0, K, chunk))
+    rest = msg.split(" entries", 1)[1] if " entries" in msg else ""
+    kind = "infinite" if name == "next_values" else "NaN or infinite"
+    return ValueError(f"{name} contains {n} {kind} entries{rest}")
+
+
+# --------------------------------------------------------------------------- on disk
+def _manifest(path: Path) -> dict:
+    mf = path / MANIFEST
+    if not mf.is_file():
+        raise ValueError(f"{path} is not an r2pvi dataset directory (no {MANIFEST})")
+    with open(mf) as fh:
+        header = json.load(fh)
+    if header.get("kind") != KIND:
+        raise ValueError(f"{path} holds a {header.get('kind')!r}, not a {KIND!r}")
+    version = header.get("format_version")
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise ValueError(
+            f"{path} has format version {version!r}; this r2pvi reads versions <= "
+            f"{FORMAT_VERSION}: upgrade r2pvi"
+        )
+    return header
+
+
+def open_directory(path, feature_map=None) -> StepSource:
+    """A :class:`StepSource` over a dataset directory; nothing is read but the headers.
+
+    A dataset stored as observations (``"phi": "map"`` or ``"next": "map"`` in the
+    manifest) needs the ``feature_map`` it was built with."""
+    path = Path(os.fspath(path))
+    if not path.exists():
+        raise FileNotFoundError(f"no such dataset directory: {path}")
+    mf = _manifest(path)
+    files = mf["files"]
+
+    def field(name):
+        f = FileField(path / files[name])
+        if list(f.shape) != list(mf["shapes"][name]):
+            raise ValueError(f"{path / files[name]} has shape {f.shape}, the manifest says "
+                             f"{mf['shapes'][name]}")
+        return f
+
+    needs_map = mf.get("phi", "stored") == "map" or mf["next"] == "map"
+    if needs_map and not callable(feature_map):
+        raise ValueError(
+            f"{path} stores observations, not features: pass the feature_map it was built "
+            "with, OfflineDataset.open(path, feature_map=f) with f(observations, actions) -> "
+            "(n, d)")
+    d = int(mf["n_features"])
+    if mf.get("phi", "stored") == "map":
+        phi: Field = MappedField(field("observations"), field("actions"), feature_map, d)
+    else:
+        phi = field("phi")
+    rewards = field("rewards")
+    if mf["next"] == "map":
+        kv = field("next_values") if "next_values" in files else None
+        nxt: NextStates = MapNext(field("next_observations"), feature_map,
+                                  int(mf["n_actions"]), d, kv)
+    elif mf["next"] == "stored":
+        nxt = StoredNext(field("next_phi"),
+                                     field("next_values") if "next_values" in files else None,
+                                     mf.get("nonnegative_next_phi"))
+    elif mf["next"] == "table":
+        table = np.load(path / files["next_table"], allow_pickle=False)
+        kt = (np.load(path / files["next_table_values"], allow_pickle=False)
+              if "next_table_values" in files else None)
+        nxt = TableNext(field("next_index"), table, kt)
+    else:
+        raise ValueError(f"{path}: unknown next-state form {mf['next']!r}")
+    extras = {}
+    for name in mf.get("extras", []):
+        extras[name] = np.load(path / f"extra_{name}.npy", mmap_mode="r", allow_pickle=False)
+    return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"))
+
+
+def _temp_dir(path: Path) -> Path:
+    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir(parents=True)
+    return tmp
+
+
+def _finish(tmp: Path, path: Path, manifest: dict, overwrite: bool) -> Path:
+    with open(tmp / MANIFEST, "w") as fh:
+        json.dump(manifest, fh, indent=1, sort_keys=True)
+    if path.exists():
+        if not overwrite:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
+        old = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
+        os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, path)  # atomic: readers see the old state or the complete dataset
+    return path
+
+
+def _write_npy_header(fh, shape, dtype):
+    np.lib.format.write_array_header_2_0(
+        fh, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)), "fortran_order": False,
+             "shape": tuple(int(s) for s in shape)})
+
+
+def _stream_field(out_path: Path, field: Field, dtype, chunk: int, transform=None):
+    """Write ``field`` step by step into a .npy file (bounded memory)."""
+    with open(out_path, "wb") as fh:
+        _write_npy_header(fh, field.shape, dtype)
+        for h in range(field.shape[0]):
+            for s, e, rows in field.chunks(h, chunk):
+                if transform is not None:
+                    rows = transform(h, s, e, rows)
+                fh.write(np.ascontiguousarray(rows, dtype=dtype).tobytes())
+
+
+class _Computed(Field):
+    """A field computed by a function of (h, start, stop): next_phi of a feature map."""
+
+    def __init__(self, shape, dtype, fn):
+        self.shape, self.dtype, self.fn = tuple(shape), np.dtype(dtype), fn
+
+    def read(self, h, start=0, stop=None):
+        return self.fn(h, start, self.shape[1] if stop is None else stop)
+
+
+def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) -> Path:
+    """Write ``source`` in the on-disk format (streamed step by step; atomic rename)."""
+    path = Path(os.fspath(path))
+    store = np.dtype(dtype) if dtype is not None else np.dtype(
+        np.float32 if source.phi.dtype == np.float32 else np.float64)
+    if store not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    tmp = _temp_dir(path)
+    try:
+        files, shapes = {}, {}
+
+        def put(name, field, dt, transform=None):
+            files[name] = name + ".npy"
+            shapes[name] = list(field.shape)
+            _stream_field(tmp / files[name], field, dt, source.chunk, transform)
+
+        phi_kind = "stored"
+        if isinstance(source.phi, MappedField):  # store what it is computed from
+            phi_kind = "map"
+            put("observations", source.phi.observations, source.phi.observations.dtype)
+            put("actions", source.phi.actions, source.phi.actions.dtype)
+        else:
+            put("phi", source.phi, store)
+        put("rewards", source.rewards, np.float64)
+        nxt = source.next
+        H, K, d = source.phi.shape
+        A = nxt.n_actions
+        meta = {"nonnegative_phi": source.nonnegative_phi, "phi": phi_kind}
+        if isinstance(nxt, MapNext):
+            kind = "map"
+            put("next_observations", nxt.observations, nxt.observations.dtype)
+            if nxt.has_known_values:
+                put("next_values", _Computed((H, K, A), np.float64,
+                                             lambda h, s, e: nxt.known(h, s, e)), np.float64)
+        elif isinstance(nxt, TableNext):
+            kind = "table"
+            put("next_index", nxt.index, np.int64)
+            files["next_table"] = "next_table.npy"
+            np.save(tmp / files["next_table"], np.asarray(nxt.table), allow_pickle=False)
+            if nxt.known_table is not None:
+                files["next_table_values"] = "next_table_values.npy"
+                np.save(tmp / files["next_table_values"], nxt.known_table, allow_pickle=False)
+        else:
+            kind = "stored"
+            feats = nxt.next_phi if isinstance(nxt, StoredNext) else _Computed(
+                (H, K, A, d), store, nxt.features)
+            put("next_phi", feats, store,
+                lambda h, s, e, rows: np.nan_to_num(rows, nan=0.0) if h == H - 1 else rows)
+            if nxt.has_known_values:
+                kv = nxt.next_values if isinstance(nxt, StoredNext) else _Computed(
+                    (H, K, A), np.float64,
+                    lambda h, s, e: nxt.known(h, s, e))
+                put("next_values", kv, np.float64)
+            meta["nonnegative_next_phi"] = nxt.nonnegative
+        extras = []
+        for name, value in source.extras.items():
+            value = np.asarray(value)
+            if value.dtype.hasobject:
+                raise TypeError(f"cannot save {name!r}: object arrays are not supported")
+            np.save(tmp / f"extra_{name}.npy", value, allow_pickle=False)
+            extras.append(name)
+        manifest = {
+            "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
+            "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
+            "dtype": store.name, "next": kind, "files": files, "shapes": shapes,
+            "extras": extras, **meta,
+        }
+        return _finish(tmp, path, manifest, overwrite)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+class DatasetWriter:
+    """Write a dataset bigger than memory, a chunk of trajectories at a time.
+
+    Each :meth:`append` takes the arrays :meth:`OfflineDataset.from_features` takes, for a
+    chunk of trajectories, validates them exactly as it does (chunk by chunk) and writes them
+    step-major to a temporary directory; :meth:`close` assembles the on-disk format there
+    (streaming, bounded memory) and renames it to ``path`` in one step, so ``path`` never
+    holds a partial dataset. Use it as a context manager: an exception discards the data.
+
+    Parameters
+    ----------
+    path : str or Path
+        The dataset directory to create.
+    horizon, n_features, n_actions : int
+        H, d and A.
+    dtype : {"float32", "float64"}, default "float32"
+        Storage type of the features (rewards and values stay float64). Fitting accumulates
+        in float64 either way.
+    check_simplex : bool, default True
+        Warn once (at :meth:`close`) when features leave the simplex.
+    overwrite : bool, default False
+        Replace an existing dataset at ``path``.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, os
+    >>> from r2pvi import DatasetWriter, OfflineDataset
+    >>> rng = np.random.default_rng(0)
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     with DatasetWriter(os.path.join(tmp, "ds"), horizon=2, n_features=3,
+    ...                        n_actions=2) as w:
+    ...         for _ in range(3):                      # 3 chunks of 10 trajectories
+    ...             w.append(rng.dirichlet(np.ones(3), (10, 2)), rng.random((10, 2)),
+    ...                      rng.dirichlet(np.ones(3), (10, 2, 2)))
+    ...     ds = OfflineDataset.open(os.path.join(tmp, "ds"))
+    ...     ds.n_trajectories, ds.phi.dtype
+    (30, dtype('float32'))
+    """
+
+    def __init__(self, path, *, horizon, n_features, n_actions, dtype="float32",
+                 check_simplex=True, overwrite=False):
+        from ._validation import check_scalar
+
+        self.path = Path(os.fspath(path))
+        self.horizon = check_scalar(horizon, "horizon", low=1, integer=True)
+        self.n_features = check_scalar(n_features, "n_features", low=1, integer=True)
+        self.n_actions = check_scalar(n_actions, "n_actions", low=1, integer=True)
+        self.dtype = _float_dtype(dtype)
+        self.check_simplex = check_simplex
+        self.overwrite = overwrite
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists; pass overwrite=True or choose a new path")
+        self._tmp: Path | None = _temp_dir(self.path)
+        # A writer dropped without close() leaves no temporary directory behind.
+        self._cleanup = weakref.finalize(self, shutil.rmtree, str(self._tmp), True)
+        self._shards: list[tuple[int, bool]] = []  # (K of the chunk, has next_values)
+        self._flags = [False, False, False, False, True, True]
+        self.n_trajectories = 0
+
+    def append(self, phi, rewards, next_phi, next_values=None) -> None:
+        """Validate and write a chunk of trajectories: ``phi (k, H, d)``, ``rewards (k, H)``,
+        ``next_phi (k, H, A, d)``, optional ``next_values (k, H, A)``."""
+        if self._tmp is None:
+            raise RuntimeError("this DatasetWriter is closed")
+        H, d, A = self.horizon, self.n_features, self.n_actions
+        p = step_major(phi, "phi", 3, self.dtype)
+        k = p.shape[1]
+        if p.shape != (H, k, d) or k == 0:
+            raise ValueError(f"phi must have shape (k, H, d) = (k, {H}, {d}) with k >= 1, got "
+                             f"{np.shape(phi)}")
+        r = step_major(rewards, "rewards", 2, np.float64)
+        if r.shape != (H, k):
+            raise ValueError(f"rewards must have shape (k, H) = {(k, H)}, got {np.shape(rewards)}")
+        n = step_major(next_phi, "next_phi", 4, self.dtype)
+        if n.shape != (H, k, A, d):
+            raise ValueError(f"next_phi must have shape (k, H, A, d) = {(k, H, A, d)}, got "
+                             f"{np.shape(next_phi)}")
+        nv = None
+        if next_values is not None:
+            nv = step_major(next_values, "next_values", 3, np.float64)
+            if nv.shape != (H, k, A):
+                raise ValueError(f"next_values must have shape (k, H, A) = {(k, H, A)}, got "
+                                 f"{np.shape(next_values)}; use NaN where the value is learned")
+        for h in range(H):
+            f = check_features_chunk(p[h], r[h], n[h], None if nv is None else nv[h],
+                                     h == H - 1)
+            for i in range(4):
+                self._flags[i] = self._flags[i] or f[i]
+            self._flags[4] &= f[4]
+            self._flags[5] &= f[5]
+        i = len(self._shards)
+        shard = self._tmp / f"shard{i:06d}"
+        shard.mkdir()
+        np.save(shard / "phi.npy", p, allow_pickle=False)
+        np.save(shard / "rewards.npy", r, allow_pickle=False)
+        last = np.nan_to_num(n[H - 1], nan=0.0)
+        if not np.array_equal(last, n[H - 1], equal_nan=False):
+            n = n.copy()
+            n[H - 1] = last
+        np.save(shard / "next_phi.npy", n, allow_pickle=False)
+        if nv is not None:
+            np.save(shard / "next_values.npy", nv, allow_pickle=False)
+        self._shards.append((k, nv is not None))
+        self.n_trajectories += k
+
+    def close(self) -> Path:
+        """Assemble the step-major files, write the manifest, rename; returns the path."""
+        if self._tmp is None:
+            raise RuntimeError("this DatasetWriter is closed")
+        if not self._shards:
+            raise ValueError("no trajectories were appended; a dataset needs at least one")
+        tmp, self._tmp = self._tmp, None
+        try:
+            H, K, d, A = self.horizon, self.n_trajectories, self.n_features, self.n_actions
+            any_nv = any(has for _, has in self._shards)
+            fields = {"phi": ((H, K, d), self.dtype), "rewards": ((H, K), np.float64),
+                      "next_phi": ((H, K, A, d), self.dtype)}
+            if any_nv:
+                fields["next_values"] = ((H, K, A), np.float64)
+            for name, (shape, dt) in fields.items():
+                shards = [FileField(tmp / f"shard{i:06d}" / f"{name}.npy") if
+                          (name != "next_values" or has) else None
+                          for i, (_, has) in enumerate(self._shards)]
+                with open(tmp / f"{name}.npy", "wb") as fh:
+                    _write_npy_header(fh, shape, dt)
+                    for h in range(H):  # file order: step, then trajectory
+                        for (k, _), f in zip(self._shards, shards, strict=True):
+                            rows = (np.full((k, A), np.nan) if f is None else f.read(h))
+                            fh.write(np.ascontiguousarray(rows, dtype=dt).tobytes())
+                for f in shards:
+                    if f is not None:
+                        f.close()
+            for i in range(len(self._shards)):
+                shutil.rmtree(tmp / f"shard{i:06d}")
+            fl = self._flags
+            if self.check_simplex:
+                warn_simplex("phi", fl[0], fl[1], 2)
+                warn_simplex("next_phi", fl[2], fl[3], 2)
+            manifest = {
+                "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
+                "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
+                "dtype": self.dtype.name, "next": "stored",
+                "files": {name: f"{name}.npy" for name in fields},
+                "shapes": {name: list(shape) for name, (shape, _) in fields.items()},
+                "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
+            }
+            return _finish(tmp, self.path, manifest, self.overwrite)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+    def abort(self):
+        """Discard everything written so far."""
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._tmp = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            if self._tmp is not None:
+                self.close()
+        else:
+            self.abort()
+        return False
