@@ -48,6 +48,12 @@ class StepContext:
     r_max: float  # reward bound; values at step h+1 lie in [0, (H - h - 1) r_max]
     v_upper: float  # the paper's value bound H (times r_max): V in [0, v_upper]
 
+    @property
+    def next_value_bound(self) -> float:
+        """``(H - h - 1) r_max``: the step's own bound on ``V_{h+1}`` (``Q_{h+1}`` is clipped
+        to it); see :mod:`r2pvi.duals.ranges`."""
+        return (self.horizon - self.h - 1) * self.r_max
+
 
 class StepRule:
     """How an algorithm turns next-step values into this step's weights ``w_h (d,)``.
