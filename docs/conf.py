@@ -170,8 +170,8 @@ html_show_sourcelink = False
 # main index also picks up any other top-level page that no toctree lists yet.
 OPTIONAL_PAGES = {
     "index": ["architecture"],
-    "user_guide/index": ["../your-own-task", "../numerical-guarantees",
-                         "../numerical-guarantees-constrained", "../classic-control"],
+    "user_guide/index": ["../your-own-task", "../numerical-guarantees", "../classic-control",
+                         "../storage"],
 }
 
 

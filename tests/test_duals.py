@@ -12,6 +12,7 @@ from r2pvi.duals import (
     HELLINGER,
     KL,
     TV,
+    ExpectationOperator,
     FactorExpectation,
     RidgeExpectation,
     chi2_regularized,
@@ -125,17 +126,36 @@ def test_general_f_path_agrees_with_closed_forms_on_ridge_operator():
                                    atol=1e-8)
 
 
-def test_general_f_with_shrunk_rows_differs_by_the_unshrunk_alpha_term():
-    # Rows summing to c < 1: for TV the supremum sits at alpha* = V_min + lam/2 and
-    # Algorithm 1 gives the closed form plus (1 - c) alpha*.
-    mu = np.array([[0.3, 0.5, 0.0]])  # c = 0.8
+class _Matrix(ExpectationOperator):
+    """An operator with given (possibly shrunk or signed) weights, like a ridge operator."""
+
+    def __init__(self, m):
+        self.m = np.asarray(m, dtype=float)
+        self.n_dims, self.n_points = self.m.shape
+
+    def __call__(self, y):
+        return self.m @ y
+
+    def rows(self, dims=None):
+        return self.m if dims is None else self.m[np.atleast_1d(dims)]
+
+
+def test_general_f_with_shrunk_rows_equals_the_closed_forms():
+    # Rows summing to s < 1 (ridge shrinkage): Algorithm 1 estimates the constant alpha with
+    # the same weights (s alpha), so it is s times the dual of the normalized weights, like the
+    # closed forms. Algorithm 1 as printed (alpha unshrunk) would add (1 - s) alpha*.
+    mu = np.array([[0.3, 0.5, 0.0], [0.1, 0.2, 0.6]])  # s = 0.8, 0.9
+    E = _Matrix(mu)
     v = np.array([2.0, 1.0, 0.5])
-    E = FactorExpectation.__new__(FactorExpectation)
-    E.mu, E.n_dims, E.n_points = mu, 1, 3
-    lam = 0.4
-    alpha_star = v.min() + lam / 2
-    expected = tv_regularized(E, v, lam)[0] + 0.2 * alpha_star
-    assert f_regularized(E, v, lam, TV)[0] == pytest.approx(expected, abs=1e-9)
+    for lam in (0.05, 0.4, 3.0):
+        np.testing.assert_allclose(f_regularized(E, v, lam, TV), tv_regularized(E, v, lam),
+                                   atol=1e-9)
+        np.testing.assert_allclose(f_regularized(E, v, lam, KL), kl_regularized(E, v, lam),
+                                   atol=1e-8)
+        normalized = FactorExpectation(mu / mu.sum(axis=1, keepdims=True))
+        np.testing.assert_allclose(f_regularized(E, v, lam, HELLINGER),
+                                   mu.sum(axis=1) * f_regularized(normalized, v, lam, HELLINGER),
+                                   atol=1e-8)
 
 
 @pytest.mark.parametrize("fn", [tv_regularized, kl_regularized, chi2_regularized])
@@ -205,7 +225,7 @@ def test_chi2_exact_solver_is_never_beaten_on_a_fine_grid():
             v = np.round(v)  # ties
         lam = float(rng.choice([0.01, 0.1, 1.0, 10.0]))
         clips = [((0, 3), (0, 9)), (None, None), ((0, 1.0), (0, 2.0))][trial % 3]
-        exact = chi2_regularized(E, v, lam, *clips)
+        exact = chi2_regularized(E, v, lam, *clips, center=False)
         grid = np.unique(np.concatenate([np.linspace(v.min(), v.max(), 4001), v]))
         trunc = np.minimum(v[None, :], grid[:, None])
         e1, e2 = trunc @ E.matrix.T, (trunc**2) @ E.matrix.T
@@ -321,6 +341,7 @@ def test_kl_matches_the_direct_formula_on_signed_ridge_estimates():
         lam = float(rng.choice([0.5, 1.0, 2.0]))
         direct = -lam * np.log(np.maximum(E(np.exp(-v / lam)), np.exp(-3.0 / lam)))
         hits += int((E(np.exp(-v / lam)) <= 0).sum())
-        np.testing.assert_allclose(kl_regularized(E, v, lam, v_max=3.0), direct, rtol=1e-12,
+        np.testing.assert_allclose(kl_regularized(E, v, lam, v_max=3.0, form="paper"), direct,
+                                   rtol=1e-12,
                                    atol=1e-12)
     assert hits > 0  # the negative-estimate branch was exercised

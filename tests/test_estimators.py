@@ -230,7 +230,8 @@ def test_get_set_params_and_clone():
     params = est.get_params()
     assert params == {"divergence": "kl", "lam": 0.3, "beta": 0.2, "gamma": 1.0,
                       "penalty": "l1", "v_min": "data", "reward_weights": None, "r_max": 1.0,
-                      "variance_aware": False, "delta": 0.05, "time_homogeneous": False}
+                      "variance_aware": False, "delta": 0.05, "kl_form": "normalized",
+                      "time_homogeneous": False}
     clone = type(est)(**params)
     assert clone.get_params() == params
     assert est.set_params(lam=2.0) is est and est.lam == 2.0

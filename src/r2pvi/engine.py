@@ -58,6 +58,12 @@ class StepContext:
     # operator restricted to some of them (sparse rows with unused features); None: all d.
     dims: np.ndarray | None = None
 
+    @property
+    def next_value_bound(self) -> float:
+        """``(H - h - 1) r_max``: the step's own bound on ``V_{h+1}`` (``Q_{h+1}`` is clipped
+        to it); see :mod:`r2pvi.duals.ranges`."""
+        return (self.horizon - self.h - 1) * self.r_max
+
 
 class StepRule:
     """How an algorithm turns next-step values into this step's weights ``w_h (d,)``.

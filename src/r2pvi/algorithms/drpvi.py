@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..duals.constrained import tv_constrained
+from ..duals.ranges import value_range
 from ..engine import StepContext, StepRule
 from ._params import check_flag, check_radius, check_v_min, floor_value
 from ._variance import VarianceAwareMixin
@@ -15,9 +16,9 @@ __all__ = ["DRPVI", "TVBallRule", "step_value_range"]
 
 def step_value_range(v: np.ndarray, ctx: StepContext) -> tuple[float, float]:
     """The known range of ``V_{h+1}``: ``[0, (H - h - 1) r_max]`` (the engine clips every
-    learned ``Q_{h+1}`` to it), widened to hold known next-state values (``v``) outside it."""
-    hi = (ctx.horizon - ctx.h - 1) * ctx.r_max
-    return min(0.0, float(np.min(v))), max(hi, float(np.max(v)))
+    learned ``Q_{h+1}`` to it), widened to hold known next-state values (``v``) outside it;
+    :func:`r2pvi.duals.ranges.value_range` at the step's bound."""
+    return value_range(v, ctx.next_value_bound)
 
 
 class TVBallRule(StepRule):

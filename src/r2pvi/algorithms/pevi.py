@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ..duals.ranges import project_onto_range, value_range
 from ..engine import StepRule
 from .base import LinearEstimator
 
@@ -9,10 +10,11 @@ __all__ = ["PEVI", "RidgeRule"]
 
 
 class RidgeRule(StepRule):
-    """Non-robust: ``w_h = Lambda_h^{-1} sum_tau phi_tau V_{h+1}(s'_tau)``."""
+    """Non-robust: ``w_h = Lambda_h^{-1} sum_tau phi_tau V_{h+1}(s'_tau)``, each factor kept in
+    the range of ``V_{h+1}``, ``[0, (H - h - 1) r_max]`` (:mod:`r2pvi.duals.ranges`)."""
 
     def __call__(self, E, v, ctx):
-        return E(v)
+        return project_onto_range(E(v), *value_range(v, ctx.next_value_bound))
 
 
 class PEVI(LinearEstimator):

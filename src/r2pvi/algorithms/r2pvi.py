@@ -5,9 +5,18 @@ from __future__ import annotations
 import copy
 import math
 
+import numpy as np
+
 from .._validation import check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
-from ..duals.regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
+from ..duals.ranges import project_onto_range, value_range
+from ..duals.regularized import (
+    KL_FORMS,
+    chi2_regularized,
+    f_regularized,
+    kl_regularized,
+    tv_regularized,
+)
 from ..engine import StepRule
 from ._params import check_flag, check_v_min
 from ._params import floor_value as _floor
@@ -19,6 +28,13 @@ THEORY = "theory"
 __all__ = ["R2PVI", "TVRule", "KLRule", "Chi2Rule", "FDivergenceRule"]
 
 
+def _step_range(v, ctx, v_min="data"):
+    """``[lower, upper]`` of ``V_{h+1}`` (:func:`~r2pvi.duals.ranges.value_range`): 0 (or a
+    negative known ``v_min``) to the step's own bound ``(H - h - 1) r_max``."""
+    lower = 0.0 if v_min == "data" else min(0.0, float(v_min))
+    return value_range(v, ctx.next_value_bound, lower)
+
+
 class TVRule(StepRule):
     """TV closed form (eq. TV-estimation): ridge regression of ``[V]_{V_min + lam}``."""
 
@@ -26,38 +42,47 @@ class TVRule(StepRule):
         self.lam, self.v_min = lam, v_min
 
     def __call__(self, E, v, ctx):
-        return tv_regularized(E, v, self.lam, _floor(self.v_min, v))
+        w = tv_regularized(E, v, self.lam, _floor(self.v_min, v))
+        return project_onto_range(w, *_step_range(v, ctx, self.v_min))
 
 
 class KLRule(StepRule):
-    """KL closed form (eq. KL-estimation): ``-lam log max{w', exp(-H r_max / lam)}``."""
+    """KL (eq. KL-estimation): ``form="normalized"`` is ``s_i`` times the dual of the
+    row-normalized ridge weights, capped at the step's bound; ``form="paper"`` is the literal
+    ``-lam log max{w', exp(-H r_max / lam)}`` (see :func:`~r2pvi.duals.kl_regularized`)."""
 
-    def __init__(self, lam):
-        self.lam = lam
+    def __init__(self, lam, form="normalized"):
+        self.lam, self.form = lam, form
 
     def __call__(self, E, v, ctx):
-        return kl_regularized(E, v, self.lam, v_max=ctx.v_upper)
+        lo, hi = _step_range(v, ctx)
+        cap = hi if self.form == "normalized" else ctx.v_upper
+        return project_onto_range(kl_regularized(E, v, self.lam, cap, self.form), lo, hi)
 
 
 class Chi2Rule(StepRule):
-    """chi^2 (eq. parameter estimation x2): exact maximization over alpha, clipped moments."""
+    """chi^2 (eq. parameter estimation x2): exact maximization over alpha of the centered
+    moments, clipped to the range of the centered values ``[0, (H - h - 1) r_max - min V]``."""
 
     def __init__(self, lam):
         self.lam = lam
 
     def __call__(self, E, v, ctx):
-        top = ctx.v_upper
-        return chi2_regularized(E, v, self.lam, (0.0, top), (0.0, top * top))
+        lo, hi = _step_range(v, ctx)
+        top = hi - float(np.min(v))
+        w = chi2_regularized(E, v, self.lam, (0.0, top), (0.0, top * top))
+        return project_onto_range(w, lo, hi)
 
 
 class FDivergenceRule(StepRule):
-    """General f (Algorithm 1): ``sup_alpha alpha - lam E_hat[f*((alpha - V)/lam)]``."""
+    """General f (Algorithm 1): ``sup_alpha E_hat[alpha - lam f*((alpha - V)/lam)]``."""
 
     def __init__(self, lam, divergence, v_min):
         self.lam, self.divergence, self.v_min = lam, divergence, v_min
 
     def __call__(self, E, v, ctx):
-        return f_regularized(E, v, self.lam, self.divergence, _floor(self.v_min, v))
+        w = f_regularized(E, v, self.lam, self.divergence, _floor(self.v_min, v))
+        return project_onto_range(w, *_step_range(v, ctx, self.v_min))
 
 
 _CLOSED_FORMS = {"tv", "kl", "chi2"}
@@ -103,9 +128,10 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
     reward_weights : array (H, d), optional
         Known ``theta_h`` (the paper assumes them known); None estimates them by ridge.
     r_max : float, default 1.0
-        Reward bound. ``Q_h`` is clipped to ``[0, (H - h) r_max]``; the KL floor is
-        ``exp(-H r_max / lam)`` and chi^2 clips its moments to ``[0, H r_max]`` and
-        ``[0, (H r_max)^2]`` (the paper's ``H`` with ``r_max = 1``).
+        Reward bound. ``Q_h`` is clipped to ``[0, (H - h) r_max]``, and every factor value
+        ``w_{h,i}`` to the range of ``V_{h+1}``, ``[0, (H - h - 1) r_max]``
+        (:mod:`r2pvi.duals.ranges`); chi^2 clips the moments of the centered values
+        ``V - min V`` to that range.
     variance_aware : bool, default False
         VA-R2PVI-TV (TV only): a first, unweighted pass gives ``V_{h+1}``, whose conditional
         variance ``sigma_h^2 = max{1, [phi^T z2]_[0,H^2] - ([phi^T z1]_[0,H])^2}`` weights a
@@ -114,6 +140,13 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
     delta : float in (0, 1), default 0.05
         Confidence of ``beta="theory"`` (the theorem's bound holds with probability at least
         ``1 - delta``); unused otherwise.
+    kl_form : {"normalized", "paper"}, default "normalized"
+        KL only. "normalized": ``w_i = s_i (c - lam log(E_i[exp(-(V - c)/lam)] / s_i))`` with
+        ``s_i`` the sum of the factor's ridge weights and ``c = min V``: the exact dual for
+        true expectations, the plain ridge estimate as ``lam -> inf`` and ``s_i`` times the
+        factor's smallest sampled value as ``lam -> 0``. "paper": the literal
+        ``-lam log max{w', exp(-H r_max/lam)}``, whose ridge shrinkage bias ``-lam log s_i``
+        grows with ``lam``. See :func:`~r2pvi.duals.kl_regularized`.
     time_homogeneous : bool, default False
         Pooled steps: every step's regressions use the transitions of all H steps, with one
         Gram matrix factored once (per-step work: next-state values and regressions). Valid
@@ -159,6 +192,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         r_max=1.0,
         variance_aware=False,
         delta=0.05,
+        kl_form="normalized",
         time_homogeneous=False,
     ):
         self.divergence = divergence
@@ -171,6 +205,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         self.r_max = r_max
         self.variance_aware = variance_aware
         self.delta = delta
+        self.kl_form = kl_form
         self.time_homogeneous = time_homogeneous
 
     def _validate_common(self, dataset):
@@ -207,8 +242,10 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         delta = check_scalar(self.delta, "delta", low=0.0, high=1.0, low_inclusive=False)
         if delta >= 1.0:
             raise ValueError(f"delta must lie in (0, 1), got {delta}")
+        if self.kl_form not in KL_FORMS:
+            raise ValueError(f"kl_form must be one of {KL_FORMS}, got {self.kl_form!r}")
         extra = {"lam": lam, "v_min": v_min, "divergence": div,
-                 "variance_aware": variance_aware}
+                 "variance_aware": variance_aware, "kl_form": self.kl_form}
         if isinstance(self.beta, str):
             extra["beta"] = self._theory_beta(dataset, div, lam, delta, variance_aware)
         return extra
@@ -254,7 +291,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         if div == "tv":
             return TVRule(lam, v_min)
         if div == "kl":
-            return KLRule(lam)
+            return KLRule(lam, params["kl_form"])
         if div == "chi2":
             return Chi2Rule(lam)
         return FDivergenceRule(lam, div, v_min)

@@ -1,0 +1,64 @@
+"""The range every factor value of a step must lie in, and the projection onto it.
+
+Each factor value ``w_{h,i}`` estimates a (robust) expectation of ``V_{h+1}`` under a
+distribution, so the truth lies in the range of ``V_{h+1}``: ``[0, (H - h - 1) r_max]`` (the
+engine clips ``Q_{h+1}`` to it; known values widen it) and, for an uncertainty ball or a
+regularized problem, at most the plain expectation (``mu0`` is feasible). A ridge
+estimate has signed weights and can leave that range; projecting it back onto an interval
+that contains the truth never increases its error (``|P(x) - t| <= |x - t|`` for ``t`` in
+the interval). Every step rule ends with :func:`project_onto_range`, so that
+
+    lower <= w_{h,i} <= min(upper, plain_i)      (plain only for the rules that pass it).
+
+The rules compute the interval with :func:`value_range` from the step's values ``v`` and the
+step's own bound ``StepContext.next_value_bound = (H - h - 1) r_max``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["value_range", "project_onto_range"]
+
+
+def value_range(v: np.ndarray, upper: float, lower: float = 0.0) -> tuple[float, float]:
+    """``(lower, upper)``: the known range of the next-step values.
+
+    ``lower`` defaults to 0, where the engine clips ``Q_{h+1}`` (pass a smaller known lower
+    bound if values can be negative); ``upper`` is the step's bound ``(H - h - 1) r_max``.
+    Each is widened to ``min(v)`` / ``max(v)`` if known values (absorbing states, stopping
+    payoffs) lie outside it.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> value_range(np.array([0.5, 2.0]), upper=3.0)
+    (0.0, 3.0)
+    >>> value_range(np.array([-0.5, 2.0]), upper=1.0)
+    (-0.5, 2.0)
+    """
+    v = np.asarray(v, dtype=float)
+    return min(float(lower), float(np.min(v))), max(float(upper), float(np.max(v)))
+
+
+def project_onto_range(w: np.ndarray, lower: float, upper: float, plain=None) -> np.ndarray:
+    """``clip(w, lower, min(upper, plain))``: factor values projected onto their known range.
+
+    ``plain (d,)``, optional, is the plain (non-robust) estimate of the same step, an upper
+    bound for every robust value (the nominal distribution is in every uncertainty set); it is
+    itself first projected onto ``[lower, upper]``. Infinite entries of ``w`` go to the bound
+    on their side; NaN is not hidden (it stays NaN, so that tests see it).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> project_onto_range(np.array([-1.0, 0.5, np.inf]), 0.0, 2.0)
+    array([0. , 0.5, 2. ])
+    >>> project_onto_range(np.array([1.5, 0.5]), 0.0, 2.0, plain=np.array([1.0, 3.0]))
+    array([1. , 0.5])
+    """
+    w = np.asarray(w, dtype=float)
+    if plain is None:
+        return np.clip(w, lower, upper)
+    top = np.clip(np.asarray(plain, dtype=float), lower, upper)
+    return np.minimum(np.maximum(w, lower), top)
