@@ -68,8 +68,7 @@ def main():
                 for h in range(env.horizon):
                     phi = env.features(h)  # (S, A, d)
                     lin = phi @ est.weights_[h]
-                    pen = penalty_values(phi, "l1", BETA, est.gram_inv_diag_[h],
-                                         est.gram_cholesky_[h])
+                    pen = penalty_values(phi, "l1", BETA, est.gram_inv_diag_[h])
                     raw = lin - pen
                     negative += int((raw < 0).sum())
                     total += raw.size

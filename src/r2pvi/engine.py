@@ -5,8 +5,9 @@ paper's clipping ``min{., H - h + 1}^+`` reads ``clip(., 0, (H - h) * r_max)``.
 
 For ``h = H-1, ..., 0`` the engine
 
-1. forms the Gram matrix ``Lambda_h = sum_tau w_tau phi_tau phi_tau^T + gamma I`` through its
-   Cholesky factor (no explicit inverse);
+1. factors the Gram matrix ``Lambda_h = sum_tau w_tau phi_tau phi_tau^T + gamma I`` in primal
+   (d x d) or dual (K x K, Woodbury) form, whichever is cheaper (no explicit inverse), for
+   dense or ``scipy.sparse`` features (:class:`~r2pvi.duals.GramFactor`);
 2. computes the next-step values ``V_{h+1}(s') = max_a Q_{h+1}(s', a)`` at the sampled next
    states, taking known action values where the dataset gives them (``V_H = 0``);
 3. asks the algorithm's :class:`StepRule` for the weights ``w_h`` — the only thing that
@@ -14,17 +15,22 @@ For ``h = H-1, ..., 0`` the engine
    ``w_{H-1} = 0`` for every divergence, so the rule is not called;
 4. stores ``theta_h + w_h`` and what the penalty ``Gamma_h`` needs, which define
    ``Q_h = clip(phi^T (theta_h + w_h) - Gamma_h(phi), 0, (H - h) r_max)``.
+
+With ``time_homogeneous=True`` (pooled steps) every step regresses on the transitions of all
+steps with one Gram matrix factored once.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.sparse as sp
 
 from .data import OfflineDataset
 from .duals._scratch import release
-from .duals.operators import RidgeExpectation, cholesky_gram
+from .duals.operators import GramFactor, RidgeExpectation
+from .sparse import StackedSparse, stack_rows
 
 __all__ = [
     "StepRule",
@@ -32,6 +38,7 @@ __all__ = [
     "FittedModel",
     "backward_induction",
     "penalty_values",
+    "elliptical_norms",
     "q_values_from_model",
     "PENALTIES",
 ]
@@ -47,6 +54,9 @@ class StepContext:
     horizon: int  # H
     r_max: float  # reward bound; values at step h+1 lie in [0, (H - h - 1) r_max]
     v_upper: float  # the paper's value bound H (times r_max): V in [0, v_upper]
+    # The factors (features) the operator's rows stand for, when the engine hands the rule an
+    # operator restricted to some of them (sparse rows with unused features); None: all d.
+    dims: np.ndarray | None = None
 
     @property
     def next_value_bound(self) -> float:
@@ -65,6 +75,11 @@ class StepRule:
     def __call__(self, E: RidgeExpectation, v: np.ndarray, ctx: StepContext) -> np.ndarray:
         raise NotImplementedError
 
+    def factor_params(self, h: int) -> np.ndarray | None:
+        """Per-factor parameters of step h, ``(d,)`` (e.g. radii), or None when the rule
+        treats every factor alike. Rules that have them index them by ``ctx.dims``."""
+        return None
+
 
 @dataclass
 class FittedModel:
@@ -74,56 +89,90 @@ class FittedModel:
     ----------
     weights : (H, d) ``theta_h + w_h``
     reward_weights : (H, d) ``theta_h`` (given or ridge-estimated)
-    gram_cholesky : (H, d, d) lower Cholesky factors of ``Lambda_h``
-    gram_inv_diag : (H, d) ``diag(Lambda_h^{-1})``
-    next_state_values : (H, K) ``V_{h+1}`` at the sampled next states (0 at ``h = H-1``)
+    gram_inv_diag : (H, d) ``diag(Lambda_h^{-1})`` (the "l1"/"l2" penalties)
+    elliptical : list of H ``(R_h, c0_h, c1_h)`` or None
+        ``||phi||^2_{Lambda_h^{-1}} = c0 ||phi||^2 + c1 ||R_h phi||^2`` (the "elliptical"
+        penalty; see :meth:`~r2pvi.duals.GramFactor.elliptical_factor`), computed once by the
+        fit so that acting never factors a matrix. None when the penalty does not need it.
+        With ``time_homogeneous`` every entry is the same object.
+    next_state_values : (H, n) ``V_{h+1}`` at the sampled next states (0 at ``h = H-1``)
+    value_moments : (H, d, 2) ``E_h([V_{h+1}, V_{h+1}^2])``, the ridge estimates of the first
+        two moments of the next-step value under step h's operator (variance-aware variants)
     """
 
     weights: np.ndarray
     reward_weights: np.ndarray
-    gram_cholesky: np.ndarray
     gram_inv_diag: np.ndarray
+    elliptical: list | None = None
     next_state_values: np.ndarray | None = None
+    value_moments: np.ndarray | None = None
 
 
-def penalty_values(phi, kind: str, beta: float, inv_diag, chol) -> np.ndarray:
+def _rows(phi):
+    """``(flat (m, d), lead)`` of features ``phi (..., d)``: dense, or stacked sparse rows."""
+    if isinstance(phi, StackedSparse):
+        return phi.matrix, phi.lead
+    return phi.reshape(-1, phi.shape[-1]), phi.shape[:-1]
+
+
+def elliptical_norms(flat, factor) -> np.ndarray:
+    """``||x||_{Lambda^{-1}}`` of rows ``x`` of ``flat (m, d)`` (dense or sparse) from the
+    fitted factor ``(R, c0, c1)``: one product with ``R``, no factorization."""
+    r, c0, c1 = factor
+    rx = r.apply_rows(flat) if hasattr(r, "apply_rows") else np.asarray(flat @ r.T)
+    sq = c1 * np.einsum("ij,ij->i", rx, rx)
+    if c0:
+        sq += c0 * _row_sumsq(flat)
+    return np.sqrt(np.maximum(sq, 0.0))
+
+
+def _row_sumsq(flat):
+    if sp.issparse(flat):
+        return np.asarray(flat.multiply(flat).sum(axis=1)).ravel()
+    return np.einsum("ij,ij->i", flat, flat)
+
+
+def penalty_values(phi, kind: str, beta: float, inv_diag, ellip=None) -> np.ndarray:
     """The pessimism penalty ``Gamma_h(phi)`` for features ``phi (..., d)``.
 
     - ``"l1"`` (paper, Thm. instance-dependent bound): ``beta sum_i |phi_i| sqrt([Lambda^-1]_ii)``
     - ``"l2"`` (the authors' code): ``beta sqrt(sum_i phi_i^2 [Lambda^-1]_ii)``
-    - ``"elliptical"`` (PEVI): ``beta ||phi||_{Lambda^-1}``
+    - ``"elliptical"`` (PEVI): ``beta ||phi||_{Lambda^-1}``, from the fitted factor ``ellip``
+      (see :func:`elliptical_norms`)
     """
+    flat, lead = _rows(phi)
     if beta == 0.0:
-        return np.zeros(phi.shape[:-1])
-    lead = phi.shape[:-1]
-    flat = phi.reshape(-1, phi.shape[-1])
+        return np.zeros(lead)
     if kind == "l1":
-        out = np.abs(flat) @ np.sqrt(inv_diag)
+        out = abs(flat) @ np.sqrt(inv_diag)
     elif kind == "l2":
-        out = np.sqrt((flat * flat) @ inv_diag)
+        sq = flat.multiply(flat) if sp.issparse(flat) else flat * flat
+        out = np.sqrt(sq @ inv_diag)
     elif kind == "elliptical":
-        z = flat @ np.linalg.solve(chol, np.eye(chol.shape[0])).T  # rows L^{-1} phi, one GEMM
-        out = np.sqrt(np.einsum("ij,ij->i", z, z))
+        out = elliptical_norms(flat, ellip)
     else:
         raise ValueError(f"penalty must be one of {PENALTIES}, got {kind!r}")
-    return beta * out.reshape(lead)
+    return beta * np.asarray(out).reshape(lead)
 
 
-def _q_step(phi, weights_h, kind, beta, inv_diag, chol, upper, known=None, nonneg=None):
-    """``clip(phi^T w - Gamma(phi), 0, upper)``, with known values where not NaN."""
-    lead = phi.shape[:-1]
-    flat = phi.reshape(-1, phi.shape[-1])  # one GEMM, not a batch of small products
+def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonneg=None):
+    """``clip(phi^T w - Gamma(phi), 0, upper)``, with known values where not NaN.
+
+    ``ellip`` is the step's elliptical factor (only read by the "elliptical" penalty);
+    ``phi`` is ``(..., d)`` dense or :class:`~r2pvi.sparse.StackedSparse`.
+    """
+    flat, lead = _rows(phi)  # one GEMM, not a batch of small products
     if kind == "l1" and beta != 0.0:
         # One pass over the features for the linear part and the penalty together.
         scale = -beta * np.sqrt(inv_diag)
         if nonneg:
-            both = flat @ np.stack([weights_h, scale], axis=1)
+            both = np.asarray(flat @ np.stack([weights_h, scale], axis=1))
             q = both[:, 0] + both[:, 1]
         else:
-            q = flat @ weights_h + np.abs(flat) @ scale
+            q = np.asarray(flat @ weights_h) + abs(flat) @ scale
     else:
-        q = flat @ weights_h - penalty_values(flat, kind, beta, inv_diag, chol)
-    q = q.reshape(lead)
+        q = np.asarray(flat @ weights_h) - penalty_values(flat, kind, beta, inv_diag, ellip)
+    q = np.asarray(q).reshape(lead)
     np.clip(q, 0.0, upper, out=q)
     if known is not None:
         q = np.where(np.isnan(known), q, known)
@@ -154,15 +203,20 @@ class _NextValue:
 
 def q_values_from_model(model: FittedModel, phi_all, h: int, *, penalty, beta, r_max,
                         known_values=None) -> np.ndarray:
-    """``Q_h`` of a fitted model at features ``phi_all (n, A, d)`` -> ``(n, A)``."""
+    """``Q_h`` of a fitted model at features ``phi_all (n, A, d)`` -> ``(n, A)``.
+
+    Costs ``O(n A d)`` plus the penalty (``O(n A d r)`` for the elliptical one with the
+    fitted ``r x d`` factor); nothing is factored or inverted here.
+    """
     H = model.weights.shape[0]
+    ellip = None if model.elliptical is None else model.elliptical[h]
     return _q_step(
         phi_all,
         model.weights[h],
         penalty,
         beta,
         model.gram_inv_diag[h],
-        model.gram_cholesky[h],
+        ellip,
         (H - h) * r_max,
         known_values,
     )
@@ -178,6 +232,8 @@ def backward_induction(
     r_max: float,
     reward_weights: np.ndarray | None = None,
     sample_weights: np.ndarray | None = None,
+    time_homogeneous: bool = False,
+    form: str = "auto",
 ) -> FittedModel:
     """Run the backward induction of Algorithms 1-2 with ``rule`` estimating ``w_h``.
 
@@ -191,39 +247,120 @@ def backward_induction(
         reward bound (Q_h is clipped to ``[0, (H - h) r_max]``).
     reward_weights : (H, d), optional
         Known ``theta_h``; None estimates ``theta_h`` by ridge regression on the rewards.
-    sample_weights : (H, K), optional
+    sample_weights : (H, n), optional
         Regression weights ``1 / sigma_h^2`` (variance-aware variants); None means 1.
+        ``n`` is K, or ``H K`` with ``time_homogeneous``.
+    time_homogeneous : bool, default False
+        Pooled steps: every step regresses on the transitions of all steps, with ONE Gram
+        matrix ``Lambda = sum_{h, tau} phi phi^T + gamma I`` factored once (once per step
+        only when ``sample_weights`` differ by step); each step then computes only its
+        next-state values at all ``H K`` next states and its regressions. Valid when the
+        nominal dynamics (and rewards) do not depend on h.
+    form : {"auto", "primal", "dual"}
+        Factorization of each Gram matrix (see :class:`~r2pvi.duals.GramFactor`); "auto"
+        takes the cheaper from the shapes.
     """
     H, d = dataset.horizon, dataset.n_features
-    source = dataset._source  # the step-major data: in memory, on disk or in Dask arrays
+    # The step-major data: in memory, on disk or in Dask arrays (None: a dataset that only
+    # offers step(h), e.g. r2pvi.sparse.SparseOfflineDataset).
+    source = getattr(dataset, "_source", None)
     nonneg_phi = dataset._nonnegative_phi  # None: checked on a step's features when needed
+    nonneg = dataset.nonnegative_next_features if source is None or time_homogeneous else None
     weights = np.zeros((H, d))
     thetas = np.zeros((H, d))
-    chols = np.zeros((H, d, d))
     inv_diags = np.zeros((H, d))
-    next_state_values = np.zeros((H, dataset.n_trajectories))
+    ellip = [None] * H if penalty == "elliptical" else None
+    moments = np.zeros((H, d, 2))
+    # ---- data access: one step's arrays, or every step's pooled (the only data path here)
+    pooled = _pooled_steps(dataset) if time_homogeneous else None
+    n_rows = dataset.n_trajectories * (H if time_homogeneous else 1)
+    next_state_values = np.zeros((H, n_rows))
     v_upper = H * r_max
+    E = None
     step_buffer = None  # one step's (K, d) float64 features, reused when they are read
     try:
         for h in range(H - 1, -1, -1):
-            phi = step_buffer = source.phi_step(h, step_buffer)  # next-state data: by chunk
-            rewards = source.rewards_step(h)
+            if time_homogeneous:
+                phi, rewards, next_phi, next_known = pooled
+            elif source is None:
+                phi, rewards, next_phi, next_known = dataset.step(h)
+            else:
+                phi = step_buffer = source.phi_step(h, step_buffer)  # next-state data: by chunk
+                rewards = source.rewards_step(h)
             sw = None if sample_weights is None else sample_weights[h]
-            chol = cholesky_gram(phi, gamma, sw)
-            E = RidgeExpectation(phi, chol, sw, nonneg_phi)
-            theta = E(rewards) if reward_weights is None else reward_weights[h]
+            # ---- linear algebra: the step's factor (pooled and unweighted: factored once)
+            if E is None or not time_homogeneous or sw is not None:
+                factor = GramFactor(phi, gamma, sw, form)
+                E = RidgeExpectation(phi, factor, sw, nonneg_phi)
+                theta = E(rewards) if reward_weights is None else None
+                inv_diag = None
+            if reward_weights is not None:
+                theta = reward_weights[h]
             if h == H - 1:
                 w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for every divergence
             else:
-                v_next = source.next_state_values(h, _NextValue(
-                    weights[h + 1], penalty, beta, inv_diags[h + 1], chols[h + 1],
-                    (H - h - 1) * r_max))
+                qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
+                                  None if ellip is None else ellip[h + 1], (H - h - 1) * r_max)
+                if time_homogeneous or source is None:
+                    v_next = qmax(next_phi, next_known, nonneg)
+                else:
+                    v_next = source.next_state_values(h, qmax)
                 next_state_values[h] = v_next
-                w = rule(E, v_next, StepContext(h, H, r_max, v_upper))
+                moments[h] = E(np.stack([v_next, v_next * v_next], axis=1))
+                w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
+            if inv_diag is None:  # after the rule: reuses what the rule formed (dual form)
+                inv_diag = E.inverse_diagonal()
+                step_ellip = factor.elliptical_factor() if ellip is not None else None
             weights[h] = theta + w
             thetas[h] = theta
-            chols[h] = chol
-            inv_diags[h] = E.inverse_diagonal()
+            inv_diags[h] = inv_diag
+            if ellip is not None:
+                ellip[h] = step_ellip
     finally:
         release()  # the duals' reusable work buffers
-    return FittedModel(weights, thetas, chols, inv_diags, next_state_values)
+    return FittedModel(weights, thetas, inv_diags, ellip, next_state_values, moments)
+
+
+def _apply_rule(rule: StepRule, E: RidgeExpectation, factor: GramFactor, v, ctx: StepContext):
+    """``rule(E, v, ctx)``; with sparse rows that leave features unused, on the operator
+    restricted to the used features plus one unused representative per distinct value of the
+    rule's per-factor parameters. An unused feature has a zero weight row, so its dual value
+    is that of its representative: the same numbers, with the duals' O(n d) work on the used
+    features only."""
+    active = factor.active_features()
+    d = E.n_dims
+    if active is None or factor.form != "dual" or active.size > 0.75 * d:
+        return rule(E, v, ctx)
+    unused = np.setdiff1d(np.arange(d), active, assume_unique=True)
+    params = rule.factor_params(ctx.h)
+    if params is None:
+        reps, group = unused[:1], np.zeros(unused.size, dtype=np.intp)
+    else:
+        _, first, group = np.unique(np.asarray(params)[unused], return_index=True,
+                                    return_inverse=True)
+        reps = unused[first]
+    cols = np.concatenate([active, reps])
+    sub = RidgeExpectation(E.phi[:, cols], factor.restrict(cols), E.weights,
+                           E.nonnegative_features)
+    w_sub = rule(sub, v, replace(ctx, dims=cols))
+    w = np.empty(d)
+    w[cols] = w_sub
+    w[unused] = w_sub[active.size + group.ravel()]
+    return w
+
+
+def _pooled_steps(dataset: OfflineDataset):
+    """Every step's transitions as one: ``(phi (H K, d), rewards (H K,), next_phi (H K, A, d),
+    next_values (H K, A) or None)``, step-major (row ``h K + tau``)."""
+    H = dataset.horizon
+    steps = [dataset.step(h) for h in range(H)]
+    if any(s[3] is not None for s in steps):
+        A = dataset.n_actions
+        known = np.concatenate([
+            np.full((dataset.n_trajectories, A), np.nan) if s[3] is None else s[3]
+            for s in steps
+        ])
+    else:
+        known = None
+    return (stack_rows([s[0] for s in steps]), np.concatenate([s[1] for s in steps]),
+            stack_rows([s[2] for s in steps]), known)

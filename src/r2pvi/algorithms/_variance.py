@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..data import OfflineDataset
-from ..duals.operators import RidgeExpectation
 from ..engine import FittedModel
+from ..sparse import stack_rows
 
 __all__ = ["VarianceAwareMixin", "variance_weights"]
 
@@ -42,12 +42,13 @@ def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float
     ((4, 40), True, True)
     """
     H, K = dataset.horizon, dataset.n_trajectories
-    weights = np.ones((H, K))
+    n = first.next_state_values.shape[1]  # K, or H K for pooled steps (time_homogeneous)
+    weights = np.ones((H, n))
+    pooled = stack_rows([dataset.step(h)[0] for h in range(H)]) if n != K else None
     for h in range(H - 1):  # V_H = 0: sigma_{H-1}^2 = max(1, 0) = 1
-        v = first.next_state_values[h]
-        phi = dataset.step_phi(h)
-        z = RidgeExpectation(phi, first.gram_cholesky[h])(np.stack([v, v * v], axis=1))  # (d, 2)
-        pred = phi @ z
+        phi = dataset.step(h)[0] if pooled is None else pooled
+        z = first.value_moments[h]  # (d, 2): ridge estimates of V_{h+1} and V_{h+1}^2
+        pred = np.asarray(phi @ z)
         mean = np.clip(pred[:, 0], 0.0, v_upper)
         second = np.clip(pred[:, 1], 0.0, v_upper * v_upper)
         weights[h] = 1.0 / np.maximum(1.0, second - mean * mean)

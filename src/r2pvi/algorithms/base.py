@@ -17,15 +17,18 @@ from .._io import file_array, file_error, load_npz, save_npz
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
-from ..duals.operators import GramMatrixError, cholesky_gram
+from ..duals.operators import GramFactor, GramMatrixError
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
 
-MODEL_FORMAT_VERSION = 1
+# Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
+# ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
+# the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
+MODEL_FORMAT_VERSION = 2
 ESTIMATOR_REGISTRY: dict[str, type] = {}
 
-_FITTED = ("weights_", "reward_weights_", "gram_cholesky_", "gram_inv_diag_")
+_FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
 
 
 class LinearEstimator(SklearnCompatMixin):
@@ -37,6 +40,9 @@ class LinearEstimator(SklearnCompatMixin):
     """
 
     _penalty_choices = PENALTIES
+    # Factorization of the Gram matrices ("auto": primal or dual from the shapes); tests and
+    # benchmarks force "primal"/"dual" to compare the two exact forms.
+    _gram_form = "auto"
     # Parameters every subclass stores in __init__ (declared for type checkers).
     beta: float
     gamma: float
@@ -122,6 +128,13 @@ class LinearEstimator(SklearnCompatMixin):
         raise NotImplementedError
 
     # ------------------------------------------------------------------ fitting
+    def _time_homogeneous(self) -> bool:
+        # --- time_homogeneous (issue 14/11): pooled steps, one Gram matrix for all steps
+        value = getattr(self, "time_homogeneous", False)
+        if not isinstance(value, bool | np.bool_):
+            raise TypeError(f"time_homogeneous must be True or False, got {value!r}")
+        return bool(value)
+
     def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None):
         try:
             return backward_induction(
@@ -133,6 +146,8 @@ class LinearEstimator(SklearnCompatMixin):
                 r_max=params["r_max"],
                 reward_weights=params["reward_weights"],
                 sample_weights=sample_weights,
+                time_homogeneous=params.get("time_homogeneous", False),
+                form=self._gram_form,
             )
         except GramMatrixError as exc:
             raise _gram_error_with_step(exc, dataset, params["gamma"], sample_weights) from None
@@ -150,6 +165,7 @@ class LinearEstimator(SklearnCompatMixin):
             )
         params = self._validate_common(dataset)
         params.update(self._validate_extra(dataset))
+        params["time_homogeneous"] = self._time_homogeneous()
         with limit_blas():  # one BLAS thread by default: see r2pvi._threads
             model = self._fit_model(dataset, params)
         self._set_fitted(model, params, dataset.n_actions)
@@ -158,8 +174,8 @@ class LinearEstimator(SklearnCompatMixin):
     def _set_fitted(self, model: FittedModel, params: dict, n_actions: int):
         self.weights_ = model.weights
         self.reward_weights_ = model.reward_weights
-        self.gram_cholesky_ = model.gram_cholesky
         self.gram_inv_diag_ = model.gram_inv_diag
+        self._elliptical = model.elliptical  # acting's cached factors (elliptical penalty)
         self.horizon_, self.n_features_in_ = model.weights.shape
         self.n_actions_ = n_actions
         self._fit_params = {k: params[k] for k in ("beta", "penalty", "r_max")}
@@ -172,7 +188,8 @@ class LinearEstimator(SklearnCompatMixin):
 
     def _model(self) -> FittedModel:
         return FittedModel(
-            self.weights_, self.reward_weights_, self.gram_cholesky_, self.gram_inv_diag_
+            self.weights_, self.reward_weights_, self.gram_inv_diag_,
+            getattr(self, "_elliptical", None),
         )
 
     # ------------------------------------------------------------------ acting
@@ -257,6 +274,10 @@ class LinearEstimator(SklearnCompatMixin):
             "fit_params": self._fit_params,
             "n_actions": self.n_actions_,
         }
+        if getattr(self, "_elliptical", None) is not None:
+            index, rs, cs = _pack_elliptical(self._elliptical)
+            arrays["elliptical_r"], arrays["elliptical_c"] = rs, cs
+            meta["elliptical_index"] = index
         return save_npz(path, "estimator", MODEL_FORMAT_VERSION, arrays, meta)
 
     @classmethod
@@ -299,7 +320,7 @@ def _gram_error_with_step(exc, dataset, gamma, sample_weights) -> GramMatrixErro
     for h in range(dataset.horizon - 1, -1, -1):
         sw = None if sample_weights is None else sample_weights[h]
         try:
-            cholesky_gram(dataset.step(h)[0], gamma, sw)
+            GramFactor(dataset.step(h)[0], gamma, sw)
         except GramMatrixError:
             return GramMatrixError(f"step h = {h} (0-based): {exc}")
     return exc
@@ -348,19 +369,11 @@ def load_estimator(path):
     H, d = weights.shape
     if H < 1 or d < 1:
         raise file_error(path, "weights_", f"must have H, d >= 1, got shape {(H, d)}")
-    model = FittedModel(
-        weights,
-        file_array(path, arrays, "reward_weights_", shape=(H, d)),
-        file_array(path, arrays, "gram_cholesky_", shape=(H, d, d)),
-        file_array(path, arrays, "gram_inv_diag_", shape=(H, d)),
-    )
-    diag = np.diagonal(model.gram_cholesky, axis1=1, axis2=2)
-    if np.any(np.triu(model.gram_cholesky, k=1)) or np.any(diag <= 0):
-        raise file_error(path, "gram_cholesky_", "must be lower-triangular with a positive "
-                         "diagonal (Cholesky factors of the Gram matrices)")
-    if np.any(model.gram_inv_diag <= 0):
+    reward_weights = file_array(path, arrays, "reward_weights_", shape=(H, d))
+    inv_diag = file_array(path, arrays, "gram_inv_diag_", shape=(H, d))
+    if np.any(inv_diag <= 0):
         raise file_error(path, "gram_inv_diag_", "must be > 0 (the diagonal of Lambda_h^-1), "
-                         f"got min {model.gram_inv_diag.min()!r}")
+                         f"got min {inv_diag.min()!r}")
     try:  # the parameters go through fit's own checks
         checked = est._validate_common(_Shape(H, d))
         checked.update(est._validate_extra(_Shape(H, d)))
@@ -384,6 +397,56 @@ def load_estimator(path):
     n_actions = header.get("n_actions")
     if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 1:
         raise file_error(path, "n_actions", f"must be an integer >= 1, got {n_actions!r}")
+    ellip = _load_elliptical(path, arrays, header, H, d, fp["penalty"] == "elliptical")
+    model = FittedModel(weights, reward_weights, inv_diag, ellip)
     est._set_fitted(model, fp, n_actions)
     return est
+
+
+def _load_elliptical(path, arrays, header, H: int, d: int, needed: bool):
+    """The elliptical penalty's per-step factors: version 1 stored the (H, d, d) Cholesky
+    factors ``L`` (``R = L^{-1}``), version 2 the distinct factors and an index per step."""
+    if header["format_version"] == 1:
+        chol = file_array(path, arrays, "gram_cholesky_", shape=(H, d, d))
+        diag = np.diagonal(chol, axis1=1, axis2=2)
+        if np.any(np.triu(chol, k=1)) or np.any(diag <= 0):
+            raise file_error(path, "gram_cholesky_", "must be lower-triangular with a positive "
+                             "diagonal (Cholesky factors of the Gram matrices)")
+        if not needed:
+            return None
+        return [(np.linalg.solve(c, np.eye(d)), 0.0, 1.0) for c in chol]
+    if not needed:
+        return None
+    rs = file_array(path, arrays, "elliptical_r", ndim=3)
+    if rs.shape[0] < 1 or rs.shape[2] != d:
+        raise file_error(path, "elliptical_r", f"must have shape (G >= 1, r, d = {d}), "
+                         f"got {rs.shape}")
+    cs = file_array(path, arrays, "elliptical_c", shape=(rs.shape[0], 2))
+    index = header.get("elliptical_index")
+    if (not isinstance(index, list) or len(index) != H
+            or not all(isinstance(g, int) and not isinstance(g, bool) and 0 <= g < rs.shape[0]
+                       for g in index)):
+        raise file_error(path, "elliptical_index",
+                         f"must be a list of H = {H} integers in [0, {rs.shape[0]})")
+    return [(rs[g], float(cs[g, 0]), float(cs[g, 1])) for g in index]
+
+
+def _pack_elliptical(factors: list) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """Distinct per-step elliptical factors as arrays ``(index (H,), R (G, r, d), c (G, 2))``
+    (pooled steps share one factor: G = 1)."""
+    seen: dict[int, int] = {}
+    index, rs, cs = [], [], []
+    for r, c0, c1 in factors:
+        if not isinstance(r, np.ndarray):
+            raise TypeError(
+                "cannot save an elliptical-penalty model fitted on sparse features (its factors "
+                "are kept as sparse products); refit it, or use penalty='l1' or 'l2'"
+            )
+        key = id(r)
+        if key not in seen:
+            seen[key] = len(rs)
+            rs.append(r)
+            cs.append((c0, c1))
+        index.append(seen[key])
+    return index, np.stack(rs), np.asarray(cs, dtype=float)
 

@@ -31,7 +31,11 @@ class TVBallRule(StepRule):
     def __call__(self, E, v, ctx):
         floor = floor_value(self.v_min, v)
         lo, hi = step_value_range(v, ctx)
-        return tv_constrained(E, v, self.rho[ctx.h], floor, v_range=(min(lo, floor), hi))
+        rho = self.rho[ctx.h] if ctx.dims is None else self.rho[ctx.h][ctx.dims]
+        return tv_constrained(E, v, rho, floor, v_range=(min(lo, floor), hi))
+
+    def factor_params(self, h):
+        return self.rho[h]
 
 
 class DRPVI(VarianceAwareMixin, LinearEstimator):
@@ -74,13 +78,17 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         VA-DRPVI (Liu & Xu 2024): a first, unweighted DRPVI pass gives
         ``V_{h+1}``, whose estimated conditional variance weights a second pass
         (weighted Gram matrix, targets and penalty).
+    time_homogeneous : bool, default False
+        Pooled steps: every step's regressions use the transitions of all H steps, with one
+        Gram matrix factored once (per-step work: next-state values and regressions). Valid
+        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
+        e.g. a Gymnasium environment); False is the paper's per-step estimator.
 
     Attributes
     ----------
     weights_ : ndarray (H, d)
         ``theta_h + w_h`` for every 0-based step.
     reward_weights_ : ndarray (H, d)
-    gram_cholesky_ : ndarray (H, d, d)
     gram_inv_diag_ : ndarray (H, d)
 
     Examples
@@ -110,6 +118,7 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         reward_weights=None,
         r_max=1.0,
         variance_aware=False,
+        time_homogeneous=False,
     ):
         self.rho = rho
         self.beta = beta
@@ -119,6 +128,7 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         self.reward_weights = reward_weights
         self.r_max = r_max
         self.variance_aware = variance_aware
+        self.time_homogeneous = time_homogeneous
 
     def _validate_extra(self, dataset):
         return {

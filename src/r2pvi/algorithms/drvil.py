@@ -48,8 +48,12 @@ class KLBallRule(StepRule):
 
     def __call__(self, E, v, ctx: StepContext):
         b_min = auto_b_min(v, E.n_points) if self.b_min == "auto" else self.b_min
-        return kl_constrained(E, v, self.rho[ctx.h], v_range=step_value_range(v, ctx),
+        rho = self.rho[ctx.h] if ctx.dims is None else self.rho[ctx.h][ctx.dims]
+        return kl_constrained(E, v, rho, v_range=step_value_range(v, ctx),
                               centered=True, b_min=b_min)
+
+    def factor_params(self, h):
+        return self.rho[h]
 
 
 def check_b_min(b_min):
@@ -117,12 +121,16 @@ class DRVIL(LinearEstimator):
         mass on the lowest values can get its plain estimate instead of a robust one (the
         ridge estimate of ``E[e^{-V/b}]`` crosses 0 as ``b -> 0``). None searches
         ``b -> 0`` (Ma et al.'s estimator without the assumption).
+    time_homogeneous : bool, default False
+        Pooled steps: every step's regressions use the transitions of all H steps, with one
+        Gram matrix factored once (per-step work: next-state values and regressions). Valid
+        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
+        e.g. a Gymnasium environment); False is the paper's per-step estimator.
 
     Attributes
     ----------
     weights_ : ndarray (H, d)
     reward_weights_ : ndarray (H, d)
-    gram_cholesky_ : ndarray (H, d, d)
     gram_inv_diag_ : ndarray (H, d)
 
     Examples
@@ -141,7 +149,7 @@ class DRVIL(LinearEstimator):
     """
 
     def __init__(self, rho, *, beta=1.0, gamma=1.0, penalty="l1", reward_weights=None,
-                 r_max=1.0, b_min="auto"):
+                 r_max=1.0, b_min="auto", time_homogeneous=False):
         self.rho = rho
         self.beta = beta
         self.gamma = gamma
@@ -149,6 +157,7 @@ class DRVIL(LinearEstimator):
         self.reward_weights = reward_weights
         self.r_max = r_max
         self.b_min = b_min
+        self.time_homogeneous = time_homogeneous
 
     def _validate_extra(self, dataset):
         return {"rho": check_radius(self.rho, dataset.horizon, dataset.n_features),

@@ -35,6 +35,11 @@ class PEVI(LinearEstimator):
         Reward bound: ``Q_h`` is clipped to ``[0, (H - h) r_max]`` (0-based ``h``).
     penalty : {"elliptical", "l1", "l2"}, default "elliptical"
         Penalty form (PEVI's own is the elliptical norm).
+    time_homogeneous : bool, default False
+        Pooled steps: every step's regressions use the transitions of all H steps, with one
+        Gram matrix factored once (per-step work: next-state values and regressions). Valid
+        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
+        e.g. a Gymnasium environment); False is the paper's per-step estimator.
 
     Examples
     --------
@@ -49,12 +54,13 @@ class PEVI(LinearEstimator):
     """
 
     def __init__(self, *, beta=1.0, gamma=1.0, reward_weights=None, r_max=1.0,
-                 penalty="elliptical"):
+                 penalty="elliptical", time_homogeneous=False):
         self.beta = beta
         self.gamma = gamma
         self.reward_weights = reward_weights
         self.r_max = r_max
         self.penalty = penalty
+        self.time_homogeneous = time_homogeneous
 
     def _make_rule(self, params):
         return RidgeRule()

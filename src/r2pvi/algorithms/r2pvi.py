@@ -147,14 +147,17 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         factor's smallest sampled value as ``lam -> 0``. "paper": the literal
         ``-lam log max{w', exp(-H r_max/lam)}``, whose ridge shrinkage bias ``-lam log s_i``
         grows with ``lam``. See :func:`~r2pvi.duals.kl_regularized`.
+    time_homogeneous : bool, default False
+        Pooled steps: every step's regressions use the transitions of all H steps, with one
+        Gram matrix factored once (per-step work: next-state values and regressions). Valid
+        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
+        e.g. a Gymnasium environment); False is the paper's per-step estimator.
 
     Attributes
     ----------
     weights_ : ndarray (H, d)
         ``theta_h + w_h`` for every 0-based step.
     reward_weights_ : ndarray (H, d)
-    gram_cholesky_ : ndarray (H, d, d)
-        Lower Cholesky factors of ``Lambda_h``.
     gram_inv_diag_ : ndarray (H, d)
         ``diag(Lambda_h^{-1})`` (the d-rectangular penalty's ingredients).
     beta_ : float
@@ -190,6 +193,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         variance_aware=False,
         delta=0.05,
         kl_form="normalized",
+        time_homogeneous=False,
     ):
         self.divergence = divergence
         self.lam = lam
@@ -202,6 +206,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         self.variance_aware = variance_aware
         self.delta = delta
         self.kl_form = kl_form
+        self.time_homogeneous = time_homogeneous
 
     def _validate_common(self, dataset):
         beta = self.beta

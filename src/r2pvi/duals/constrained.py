@@ -154,7 +154,7 @@ def _value_range(v_range) -> tuple[float, float]:
 def _factorization(E):
     """``(psi (n, p), R (d, p))`` with ``M = R psi^T`` for the operators whose structure is
     known (ridge: ``R = Lambda^{-1}``, ``psi = W Phi``; factors: ``R = I``, ``psi = mu^T``)."""
-    if isinstance(E, RidgeExpectation):
+    if isinstance(E, RidgeExpectation) and E.primal_dense:  # dual form / sparse: E.matrix
         psi = E.phi if E.weights is None else E.phi * E.weights[:, None]
         linv = E.chol_inverse
         return psi, linv.T @ linv

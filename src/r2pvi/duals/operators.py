@@ -12,7 +12,10 @@ states, or all states of a finite model) to the d expectations ``E(y)_i = sum_j 
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
+import scipy.sparse as sp
 
 from ._scratch import buffer
 
@@ -20,6 +23,8 @@ __all__ = [
     "ExpectationOperator",
     "RidgeExpectation",
     "FactorExpectation",
+    "GramFactor",
+    "choose_form",
     "cholesky_gram",
     "cholesky_solve",
     "prefix_sums",
@@ -213,10 +218,14 @@ def cholesky_gram(phi: np.ndarray, gamma: float, weights: np.ndarray | None = No
     """Lower Cholesky factor of ``Lambda = sum_tau w_tau phi_tau phi_tau^T + gamma I``.
 
     The Gram matrix of Algorithms 1-2 (line 3), optionally weighted by ``w = 1/sigma^2``
-    for the variance-aware variants.
+    for the variance-aware variants. ``phi`` may be a ``scipy.sparse`` matrix (d x d result).
     """
-    xw = phi if weights is None else phi * weights[:, None]
-    gram = xw.T @ phi
+    if sp.issparse(phi):
+        xw = phi if weights is None else sp.diags(weights) @ phi
+        gram = np.asarray((xw.T @ phi).toarray(), dtype=float)
+    else:
+        xw = phi if weights is None else phi * weights[:, None]
+        gram = xw.T @ phi
     gram[np.diag_indices_from(gram)] += gamma
     try:
         return np.linalg.cholesky(gram)
@@ -234,15 +243,303 @@ class GramMatrixError(np.linalg.LinAlgError):
     A ``LinAlgError``, hence a ``ValueError``."""
 
 
+FORMS = ("auto", "primal", "dual")
+
+# From this size on, triangular inverses go through LAPACK's trtri (d^3/3 flops) rather than
+# a generic solve against the identity (about 8x the flops): measured at d = 1152 with one BLAS
+# thread, 60 ms against 336 ms. Below it, NumPy's LAPACK only (see the note above).
+_TRTRI_FROM = 256
+
+
+def _triangular_inverse(lower: np.ndarray) -> np.ndarray:
+    """``L^{-1}`` of a lower-triangular ``L``."""
+    n = lower.shape[0]
+    if n < _TRTRI_FROM:
+        return np.linalg.solve(lower, np.eye(n))
+    from scipy.linalg import lapack
+
+    inv, info = lapack.dtrtri(lower, lower=1)
+    if info != 0:  # pragma: no cover - a Cholesky factor has a positive diagonal
+        raise np.linalg.LinAlgError(f"triangular inverse failed (info={info})")
+    return np.tril(inv)
+
+
+def choose_form(n: int, d: int, sparse: bool = False) -> str:
+    """Primal (d x d) or dual (n x n, Woodbury) factorization of ``Lambda``: dual when d > n.
+
+    Counting multiply-adds, the primal costs ``n d^2 / 2`` (Gram) ``+ d^3 / 3`` (Cholesky and
+    triangular inverse) and the dual ``n^2 d`` (Gram and ``C^{-1} Psi``) ``+ n^3 / 3``; the
+    counts cross a little below d = n, but LAPACK's factorizations run slower than the
+    Gram products: measured at n = 1000, d = 1152 (one BLAS thread, a TV step with the
+    diagonal of ``Lambda^{-1}``), primal 907 ms and dual 675 ms. So the dual form whenever
+    d > n (for sparse rows too: its products cost ``nnz`` and the factor is the small one).
+    """
+    return "dual" if d > n else "primal"
+
+
+class GramFactor:
+    """Exact factorization of ``Lambda = Phi^T W Phi + gamma I`` in primal or dual form.
+
+    With ``Psi = W^{1/2} Phi`` (n x d; dense or ``scipy.sparse``):
+
+    - **primal** (``d x d``): ``Lambda = L L^T`` (Cholesky), ``L^{-1}`` by one triangular
+      inverse; ``Lambda^{-1} b = L^{-T} L^{-1} b``, ``diag(Lambda^{-1})`` = column norms of
+      ``L^{-1}``.
+    - **dual** (``n x n``, Woodbury): ``G = Psi Psi^T + gamma I = C C^T``. Then
+      ``Lambda^{-1} Psi^T = Psi^T G^{-1}`` (the push-through identity), so the ridge weights are
+      ``Lambda^{-1} Phi^T W y = Psi^T G^{-1} W^{1/2} y`` with no cancellation, and
+      ``Lambda^{-1} = (I - Psi^T G^{-1} Psi) / gamma`` gives ``diag(Lambda^{-1})`` and
+      ``||x||^2_{Lambda^{-1}} = (||x||^2 - ||C^{-1} Psi x||^2) / gamma`` from the same factor.
+      These two subtract quantities of size ``||x||^2``: relative error about
+      ``eps * ||x||^2 / (gamma ||x||^2_{Lambda^{-1}})``, i.e. ``eps`` times the ratio of the
+      data's coverage of ``x`` to ``gamma`` (1e-13 for counts up to 1e3 with ``gamma = 1``).
+      The same holds for the weights when rows repeat (``Psi Psi^T`` singular): ``G^{-1}``
+      amplifies its null space by ``1/gamma`` and ``Psi^T`` cancels it, leaving errors of about
+      ``eps ||Psi||^2 / gamma``. For a tiny ``gamma`` force ``form="primal"``.
+
+    ``form="auto"`` picks the cheaper one from the shapes (:func:`choose_form`); both give the
+    same numbers to rounding.
+
+    Parameters
+    ----------
+    phi : ndarray or scipy.sparse matrix (n, d)
+    gamma : float
+        Ridge parameter (> 0).
+    weights : ndarray (n,), optional
+        Regression weights ``w >= 0`` (variance-aware variants); None means 1.
+    form : {"auto", "primal", "dual"}
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> phi = np.random.default_rng(0).random((3, 5))          # n = 3 < d = 5: dual
+    >>> f = GramFactor(phi, gamma=0.5)
+    >>> f.form
+    'dual'
+    >>> lam = phi.T @ phi + 0.5 * np.eye(5)
+    >>> bool(np.allclose(f.inverse_diagonal(), np.diag(np.linalg.inv(lam))))
+    True
+    """
+
+    def __init__(self, phi, gamma: float, weights: np.ndarray | None = None, form: str = "auto"):
+        if form not in FORMS:
+            raise ValueError(f"form must be one of {FORMS}, got {form!r}")
+        self.sparse = sp.issparse(phi)
+        if self.sparse:
+            phi = sp.csr_matrix(phi, dtype=float)
+        self.phi = phi
+        self.weights = weights
+        self.gamma = float(gamma)
+        self.n, self.d = phi.shape
+        self.form = choose_form(self.n, self.d, self.sparse) if form == "auto" else form
+        self._linv = self._cinv = self._u = None
+        if self.form == "primal":
+            self.chol = cholesky_gram(phi, gamma, weights)
+            return
+        self.chol = None
+        self.root = None if weights is None else np.sqrt(weights)
+        psi = self.psi
+        gram = psi @ psi.T
+        gram = np.array(gram.toarray() if self.sparse else gram, dtype=float)
+        gram[np.diag_indices_from(gram)] += gamma
+        try:
+            self.dual_chol = np.linalg.cholesky(gram)
+        except np.linalg.LinAlgError:
+            raise GramMatrixError(
+                f"the Gram matrix Psi Psi^T + gamma I (dual form) is not numerically positive "
+                f"definite: gamma = {gamma!r} is too small for these features; use a larger "
+                "gamma (the default is 1.0)"
+            ) from None
+
+    @classmethod
+    def from_cholesky(cls, phi, chol: np.ndarray, weights: np.ndarray | None = None,
+                      gamma: float | None = None) -> GramFactor:
+        """A primal factor from a given lower Cholesky factor of ``Lambda``."""
+        self = cls.__new__(cls)
+        self.sparse = sp.issparse(phi)
+        self.phi, self.weights, self.chol = phi, weights, chol
+        self.n, self.d = phi.shape
+        self.gamma = gamma
+        self.form = "primal"
+        self._linv = self._cinv = self._u = None
+        return self
+
+    # ------------------------------------------------------------------ pieces
+    @property
+    def psi(self):
+        """``W^{1/2} Phi`` (n x d), the rows that enter the Gram matrix (computed once)."""
+        root = getattr(self, "root", None)
+        if root is None:
+            return self.phi
+        if getattr(self, "_psi", None) is None:
+            self._psi = sp.diags(root) @ self.phi if self.sparse else self.phi * root[:, None]
+        return self._psi
+
+    @property
+    def linv(self) -> np.ndarray:
+        """``L^{-1}`` (primal form; computed once)."""
+        if self._linv is None:
+            self._linv = _triangular_inverse(self.chol)
+        return self._linv
+
+    @property
+    def cinv(self) -> np.ndarray:
+        """``C^{-1}`` with ``C C^T = Psi Psi^T + gamma I`` (dual form; computed once)."""
+        if self._cinv is None:
+            self._cinv = _triangular_inverse(self.dual_chol)
+        return self._cinv
+
+    @property
+    def u(self) -> np.ndarray:
+        """``U = C^{-1} Psi`` (n x d, dense; dual form; computed once): one triangular solve
+        (``n^2 d / 2`` multiply-adds, half a GEMM) for dense features."""
+        if self._u is None:
+            psi = self.psi
+            if self.sparse:
+                self._u = np.asarray((psi.T @ self.cinv.T).T)
+            else:
+                from scipy.linalg import solve_triangular
+
+                self._u = solve_triangular(self.dual_chol, psi, lower=True, check_finite=False)
+        return self._u
+
+    @property
+    def z(self) -> np.ndarray:
+        """``Z = G^{-1} Psi`` (n x d, dense features, dual form; computed once): one GEMM gives
+        both the weight matrix ``M = Z^T W^{1/2}`` and ``diag(Psi^T G^{-1} Psi)``."""
+        if getattr(self, "_z", None) is None:
+            self._z = self.ginv @ self.psi
+        return self._z
+
+    @property
+    def ginv(self) -> np.ndarray:
+        """``G^{-1} = C^{-T} C^{-1}`` (n x n; dual form; computed once)."""
+        if getattr(self, "_ginv", None) is None:
+            self._ginv = self.cinv.T @ self.cinv
+        return self._ginv
+
+    def _dual_apply(self, z):
+        """``G^{-1} z = C^{-T} C^{-1} z`` for ``z (n,)`` or ``(n, m)``."""
+        ci = self.cinv
+        return ci.T @ (ci @ z)
+
+    def active_features(self) -> np.ndarray | None:
+        """Indices of the features some row uses (sparse rows), None for dense rows."""
+        if not self.sparse:
+            return None
+        return np.unique(self.phi.indices)
+
+    def restrict(self, cols: np.ndarray) -> GramFactor:
+        """The factor of the features ``cols`` alone, for a dual-form factor whose other
+        features are unused (zero columns): ``Lambda`` is then block diagonal, ``Psi Psi^T``
+        and its factor are unchanged and shared."""
+        if self.form != "dual":
+            raise ValueError("restrict needs the dual form")
+        new = copy.copy(self)
+        new.phi = self.phi[:, cols]
+        new.d = len(cols)
+        new._psi = None
+        new._u = None if self._u is None else self._u[:, cols]
+        new._z = None if getattr(self, "_z", None) is None else self._z[:, cols]
+        return new
+
+    # ------------------------------------------------------------------ the operator
+    def regress(self, y: np.ndarray) -> np.ndarray:
+        """Ridge weights ``Lambda^{-1} Phi^T W y`` for ``y (n,)`` or ``(n, m)``."""
+        if self.form == "primal":
+            yw = y if self.weights is None else (y.T * self.weights).T
+            return cholesky_solve(self.chol, np.asarray(self.phi.T @ yw))
+        ys = y if self.root is None else (y.T * self.root).T
+        return np.asarray(self.psi.T @ self._dual_apply(ys))
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``Lambda^{-1} b`` for ``b (d,)`` or ``(d, m)``."""
+        if self.form == "primal":
+            return cholesky_solve(self.chol, b)
+        psi = self.psi
+        return (b - np.asarray(psi.T @ self._dual_apply(np.asarray(psi @ b)))) / self.gamma
+
+    def matrix(self) -> np.ndarray:
+        """The weight matrix ``M = Lambda^{-1} Phi^T W`` (d x n, dense)."""
+        if self.form == "primal":
+            xw = self.phi if self.weights is None else _scale_rows(self.phi, self.weights)
+            xw_t = xw.T.toarray() if self.sparse else xw.T
+            return self.linv.T @ (self.linv @ xw_t)
+        if not self.sparse:
+            m = np.array(self.z.T, order="C")  # a copy: z stays cached
+            return m if self.root is None else np.multiply(m, self.root, out=m)
+        g = self.ginv if self.root is None else self.ginv * self.root
+        return np.asarray(self.psi.T @ g)
+
+    def inverse_diagonal(self) -> np.ndarray:
+        """``diag(Lambda^{-1})`` without forming ``Lambda^{-1}``."""
+        if self.form == "primal":
+            linv = self.linv
+            return np.einsum("ij,ij->j", linv, linv)
+        if self.sparse:
+            quad = _sparse_column_quadratic(self.psi, self.ginv)
+        elif getattr(self, "_z", None) is not None:  # the weight matrix was formed: n d more
+            quad = np.einsum("ij,ij->j", self.psi, self._z)
+        else:
+            u = self.u
+            quad = np.einsum("ij,ij->j", u, u)
+        return np.clip(1.0 - quad, 0.0, 1.0) / self.gamma
+
+    def elliptical_factor(self):
+        """``(R, c0, c1)`` with ``||x||^2_{Lambda^{-1}} = c0 ||x||^2 + c1 ||R x||^2``.
+
+        Primal: ``(L^{-1}, 0, 1)``; dual: ``(C^{-1} Psi, 1/gamma, -1/gamma)``. Acting needs only
+        these products: computed once by ``fit``, never a factorization per call.
+        """
+        if self.form == "primal":
+            return self.linv, 0.0, 1.0
+        r = self.u if not self.sparse else _SparseProduct(self.cinv, self.psi)
+        return r, 1.0 / self.gamma, -1.0 / self.gamma
+
+
+def _scale_rows(x, w):
+    return sp.diags(w) @ x if sp.issparse(x) else x * w[:, None]
+
+
+class _SparseProduct:
+    """``R = C^{-1} Psi`` kept as its two factors (``Psi`` sparse): ``R @ x^T`` without
+    forming the dense n x d matrix."""
+
+    def __init__(self, cinv, psi):
+        self.cinv, self.psi = cinv, sp.csr_matrix(psi)
+        self.shape = (cinv.shape[0], psi.shape[1])
+
+    def apply_rows(self, x):
+        """``(R x_j)_j`` for rows ``x (m, d)``: ``(m, n)``."""
+        return np.asarray((self.psi @ x.T).T @ self.cinv.T) if not sp.issparse(x) else \
+            np.asarray((x @ self.psi.T).toarray() @ self.cinv.T)
+
+
+def _sparse_column_quadratic(psi, ginv: np.ndarray) -> np.ndarray:
+    """``diag(Psi^T G^{-1} Psi)`` for sparse ``Psi (n, d)``, on the used columns only:
+    ``Z = Psi_A^T G^{-1}`` (``nnz(Psi) n`` flops, ``|A| x n`` dense for the ``|A|`` used
+    columns), then the sum of ``Psi_A^T * Z`` over the non-zeros; unused columns give 0."""
+    csc = sp.csc_matrix(psi)
+    out = np.zeros(csc.shape[1])
+    used = np.flatnonzero(np.diff(csc.indptr))
+    if used.size == 0:
+        return out
+    sub_t = csc[:, used].T.tocsr()  # (|A|, n)
+    z = np.asarray(sub_t @ ginv)
+    out[used] = np.asarray(sub_t.multiply(z).sum(axis=1)).ravel()
+    return out
+
+
 class RidgeExpectation(ExpectationOperator):
     """Ridge-regression estimate of the factor expectations: ``E(y) = Lambda^{-1} Phi^T W y``.
 
     Parameters
     ----------
-    phi : ndarray (n, d)
+    phi : ndarray or scipy.sparse matrix (n, d)
         Features of the taken actions at this step.
-    chol : ndarray (d, d)
-        Lower Cholesky factor of ``Lambda = Phi^T W Phi + gamma I`` (see :func:`cholesky_gram`).
+    chol : ndarray (d, d) or GramFactor
+        Lower Cholesky factor of ``Lambda = Phi^T W Phi + gamma I`` (see :func:`cholesky_gram`),
+        or a :class:`GramFactor` (primal or dual form, dense or sparse features).
     weights : ndarray (n,), optional
         Sample weights ``w = 1 / sigma^2`` (variance-aware regression); None means 1.
 
@@ -253,32 +550,54 @@ class RidgeExpectation(ExpectationOperator):
     >>> E = RidgeExpectation(phi, cholesky_gram(phi, gamma=1e-12))
     >>> np.round(E(np.array([1.0, 5.0, 3.0])), 6)      # per-factor sample means
     array([2., 5.])
+    >>> E2 = RidgeExpectation(phi, GramFactor(phi, 1e-6, form="dual"))   # Woodbury form
+    >>> np.round(E2(np.array([1.0, 5.0, 3.0])), 4)
+    array([2., 5.])
     """
 
     nonnegative = False
 
-    def __init__(self, phi: np.ndarray, chol: np.ndarray, weights: np.ndarray | None = None,
+    def __init__(self, phi, chol, weights: np.ndarray | None = None,
                  nonnegative_features: bool | None = None):
         self.phi = phi
-        self.chol = chol
+        if isinstance(chol, GramFactor):
+            self.factor = chol
+        else:
+            self.factor = GramFactor.from_cholesky(phi, chol, weights)
+        self.chol = self.factor.chol
         self.weights = weights
         self.nonnegative_features = nonnegative_features  # phi >= 0 (None: check when needed)
         self.n_points, self.n_dims = phi.shape
+        # The fast feature-space paths below need dense rows and the primal factor; otherwise
+        # the explicit (d x n) weight matrix, which the dual form gets for n^2 d flops.
+        self.primal_dense = self.factor.form == "primal" and not sp.issparse(phi)
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
-        yw = y if self.weights is None else (y.T * self.weights).T
-        return cholesky_solve(self.chol, self.phi.T @ yw)
+        return self.factor.regress(y)
 
     @property
     def chol_inverse(self) -> np.ndarray:
-        """``L^{-1}`` (d x d, computed once): applies ``Lambda^{-1} = L^{-T} L^{-1}`` to many
-        columns as two GEMMs; ``Lambda^{-1}`` itself is never formed."""
-        linv = getattr(self, "_linv", None)
-        if linv is None:
-            linv = self._linv = np.linalg.solve(self.chol, np.eye(self.n_dims))
-        return linv
+        """``L^{-1}`` (d x d, computed once; primal form): applies ``Lambda^{-1} = L^{-T}
+        L^{-1}`` to many columns as two GEMMs; ``Lambda^{-1}`` itself is never formed."""
+        if self.factor.form != "primal":
+            raise AttributeError("chol_inverse exists for the primal form only")
+        return self.factor.linv
+
+    def rows(self, dims=None) -> np.ndarray:
+        if dims is None:
+            return self.factor.matrix()
+        dims = np.atleast_1d(dims)
+        if not self.primal_dense:
+            return self.matrix[dims]
+        xw = self.phi if self.weights is None else self.phi * self.weights[:, None]
+        # Row i of Lambda^{-1} Phi^T W is (Lambda^{-1} e_i)^T Phi^T W.
+        unit = np.zeros((self.n_dims, dims.size))
+        unit[dims, np.arange(dims.size)] = 1.0
+        return cholesky_solve(self.chol, unit).T @ xw.T
 
     def weight_columns(self, src: np.ndarray, out: np.ndarray) -> np.ndarray:
+        if not self.primal_dense:
+            return super().weight_columns(src, out)
         # Gather feature rows (cheap, contiguous) and apply L^{-T} L^{-1} by two GEMMs.
         xw = np.take(self.phi, np.maximum(src, 0), axis=0, mode="clip",
                      out=buffer("ridge.xw", (src.size, self.n_dims)))
@@ -307,6 +626,8 @@ class RidgeExpectation(ExpectationOperator):
 
     def sorted_blocks(self, v: np.ndarray, breakpoints_extra=(), moments: int = 3
                       ) -> SortedBlocks:
+        if not self.primal_dense:
+            return super().sorted_blocks(v, breakpoints_extra, moments)
         # M = Lambda^{-1} X^T is linear in the features: sum each block in feature space
         # (one batched product), then map the (nb, d) sums by Lambda^{-1}. |M| is bounded by
         # |Lambda^{-1}| |X|; exact columns are formed only for the blocks asked for.
@@ -331,21 +652,9 @@ class RidgeExpectation(ExpectationOperator):
         s2 = sums[2] if moments == 3 else None
         return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, columns)
 
-    def rows(self, dims=None) -> np.ndarray:
-        xw = self.phi if self.weights is None else self.phi * self.weights[:, None]
-        if dims is None:
-            linv = self.chol_inverse
-            return linv.T @ (linv @ xw.T)
-        dims = np.atleast_1d(dims)
-        # Row i of Lambda^{-1} Phi^T W is (Lambda^{-1} e_i)^T Phi^T W.
-        unit = np.zeros((self.n_dims, dims.size))
-        unit[dims, np.arange(dims.size)] = 1.0
-        return cholesky_solve(self.chol, unit).T @ xw.T
-
     def inverse_diagonal(self) -> np.ndarray:
-        """``diag(Lambda^{-1})`` without forming the inverse: column norms of ``L^{-1}``."""
-        linv = self.chol_inverse
-        return np.einsum("ij,ij->j", linv, linv)
+        """``diag(Lambda^{-1})`` without forming the inverse (see :class:`GramFactor`)."""
+        return self.factor.inverse_diagonal()
 
 
 class FactorExpectation(ExpectationOperator):

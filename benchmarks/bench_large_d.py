@@ -1,0 +1,300 @@
+"""Large feature spaces (issue 14): fit times against the linear-algebra floor, peak memory.
+
+CartPole-like data built with NumPy (no Gymnasium needed): K episodes of H = 200 steps of
+the CartPole equations (Euler, tau = 0.02, force 10) under an epsilon-greedy (0.3) linear
+state-feedback controller, reward 1 while the pole is up; episodes are not cut at failure
+(every step carries data), so each step has K transitions.
+
+- ``rbf``: dense normalized Gaussian RBF on a 4 x 4 x 6 x 6 grid over (x, x_dot, theta,
+  theta_dot), crossed with the 2 actions block-wise: d = 1152.
+- ``tiles``: tile coding, 8 tilings of 6^4 tiles each, averaged over the tilings (8 non-zeros
+  of 1/8 per row), crossed with the actions: d = 20,736, stored as ``scipy.sparse`` rows.
+- ``act``: per-state acting time at d = 450 (RBF 3 x 3 x 5 x 5 x 2 actions), PEVI
+  (elliptical penalty) against R2PVI-TV (l1 penalty).
+
+The floor is the issue's: for one step, one K x d Gram matrix + Cholesky + solve in the
+primal (d x d) and in the dual (K x K) form; ``floor = H * min(primal, dual)``, timed in the
+same run. Every case runs in its own subprocess (peak RSS is the child's ``ru_maxrss``), with
+one BLAS thread by default (the machine is shared).
+
+    python benchmarks/bench_large_d.py                   # every case
+    python benchmarks/bench_large_d.py --cases rbf300 tiles300 act
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+H = 200
+A = 2
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def cartpole_episodes(K, seed=0, eps=0.3):
+    """States (K, H+1, 4), actions (K, H), rewards (K, H) of a CartPole-like system."""
+    rng = np.random.default_rng(seed)
+    g, mc, mp, length, force, tau = 9.8, 1.0, 0.1, 0.5, 10.0, 0.02
+    total, pml = mc + mp, mp * length
+    gain = np.array([1.0, 1.5, 18.0, 3.0])  # a stabilizing state feedback (hand-tuned)
+    s = rng.uniform(-0.05, 0.05, size=(K, 4))
+    states = np.empty((K, H + 1, 4))
+    actions = np.empty((K, H), dtype=np.int64)
+    rewards = np.empty((K, H))
+    for h in range(H):
+        states[:, h] = s
+        a = (s @ gain > 0).astype(np.int64)
+        explore = rng.random(K) < eps
+        a[explore] = rng.integers(0, A, explore.sum())
+        f = np.where(a == 1, force, -force)
+        x, xd, th, thd = s.T
+        ct, st_ = np.cos(th), np.sin(th)
+        temp = (f + pml * thd**2 * st_) / total
+        thacc = (g * st_ - ct * temp) / (length * (4.0 / 3.0 - mp * ct**2 / total))
+        xacc = temp - pml * thacc * ct / total
+        s = np.stack([x + tau * xd, xd + tau * xacc, th + tau * thd, thd + tau * thacc], axis=1)
+        actions[:, h] = a
+        rewards[:, h] = ((np.abs(s[:, 0]) < 2.4) & (np.abs(s[:, 2]) < 0.2095)).astype(float)
+    states[:, H] = s
+    return states, actions, rewards
+
+
+LOW = np.array([-2.4, -3.0, -0.21, -3.0])
+HIGH = -LOW
+
+
+def rbf_map(grid):
+    """Normalized Gaussian RBF on a grid of centers, crossed with the actions: (n, A * prod)."""
+    axes = [np.linspace(lo, hi, k) for lo, hi, k in zip(LOW, HIGH, grid, strict=True)]
+    centers = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
+    width = (HIGH - LOW) / (np.array(grid) - 1)
+    m = centers.shape[0]
+
+    def feature_map(obs, act):
+        z = (obs[:, None, :] - centers[None]) / width
+        k = np.exp(-0.5 * np.einsum("nmj,nmj->nm", z, z))
+        k /= k.sum(axis=1, keepdims=True)
+        out = np.zeros((obs.shape[0], A * m))
+        for a in range(A):
+            rows = act == a
+            out[rows, a * m:(a + 1) * m] = k[rows]
+        return out
+
+    return feature_map, A * m
+
+
+def tile_map(tiles=6, tilings=8, seed=1):
+    """Tile coding averaged over tilings, crossed with the actions: sparse (n, A * T * tiles^4)."""
+    rng = np.random.default_rng(seed)
+    offsets = rng.uniform(0, 1, size=(tilings, 4))
+    per = tiles**4
+    d = A * tilings * per
+
+    def feature_map(obs, act):
+        u = (np.clip(obs, LOW, HIGH) - LOW) / (HIGH - LOW) * (tiles - 1)
+        n = obs.shape[0]
+        idx = np.floor(u[:, None, :] + offsets[None]).astype(np.int64)  # (n, T, 4)
+        idx = np.clip(idx, 0, tiles - 1)
+        flat = ((idx[..., 0] * tiles + idx[..., 1]) * tiles + idx[..., 2]) * tiles + idx[..., 3]
+        cols = act[:, None] * tilings * per + np.arange(tilings)[None] * per + flat
+        rows = np.repeat(np.arange(n), tilings)
+        return sp.csr_matrix((np.full(n * tilings, 1.0 / tilings), (rows, cols.ravel())),
+                             shape=(n, d))
+
+    return feature_map, d
+
+
+def dense_dataset(K, grid, seed=0):
+    """Step-major dense dataset (built without the (K, H, ...) copies of from_features)."""
+    from r2pvi import OfflineDataset
+
+    states, actions, rewards = cartpole_episodes(K, seed)
+    fmap, d = rbf_map(grid)
+    phi = np.empty((H, K, d))
+    next_phi = np.empty((H, K, A, d))
+    for h in range(H):
+        phi[h] = fmap(states[:, h], actions[:, h])
+        for a in range(A):
+            next_phi[h, :, a] = fmap(states[:, h + 1], np.full(K, a))
+    # The private constructor takes step-major arrays as they are: at K = 1000 the public
+    # from_features would hold a second 5.5 GB copy during construction.
+    ds = OfflineDataset(_phi=phi, _rewards=np.ascontiguousarray(rewards.T), _next_phi=next_phi,
+                        _next_values=None)
+    return ds, d
+
+
+def sparse_dataset(K, seed=0):
+    from r2pvi.sparse import SparseOfflineDataset
+
+    states, actions, rewards = cartpole_episodes(K, seed)
+    fmap, d = tile_map()
+    return SparseOfflineDataset.from_transitions(states[:, :-1], actions, rewards,
+                                                 states[:, 1:], fmap, A), d
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+def step_floor(phi, rewards, gamma=1.0, repeats=3):
+    """(primal, dual) seconds of one Gram matrix + Cholesky + solve for a K x d step.
+
+    Sparse rows: the dual's Gram matrix is a sparse product (then a dense K x K Cholesky);
+    the primal (a dense d x d factorization) is not timed above d = 4096.
+    """
+    if sp.issparse(phi):
+        return sparse_step_floor(phi, rewards, gamma, repeats)
+    dense = phi
+
+    def primal():
+        g = dense.T @ dense
+        g[np.diag_indices_from(g)] += gamma
+        c = np.linalg.cholesky(g)
+        np.linalg.solve(c.T, np.linalg.solve(c, dense.T @ rewards))
+
+    def dual():
+        g = dense @ dense.T
+        g[np.diag_indices_from(g)] += gamma
+        c = np.linalg.cholesky(g)
+        dense.T @ np.linalg.solve(c.T, np.linalg.solve(c, rewards))
+
+    out = []
+    for fn in (primal, dual):
+        if fn is primal and dense.shape[1] > 4096:  # a dense d x d Gram matrix: GBs, minutes
+            out.append(np.inf)
+            continue
+        best = np.inf
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            best = min(best, time.perf_counter() - t0)
+        out.append(best)
+    return out
+
+
+def sparse_step_floor(phi, rewards, gamma, repeats):
+    def dual():
+        g = (phi @ phi.T).toarray()
+        g[np.diag_indices_from(g)] += gamma
+        c = np.linalg.cholesky(g)
+        phi.T @ np.linalg.solve(c.T, np.linalg.solve(c, rewards))
+
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        dual()
+        best = min(best, time.perf_counter() - t0)
+    return [np.inf, best]
+
+
+def timed(fn):
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def fits(ds, names, pooled):
+    from r2pvi import PEVI, R2PVI
+    from r2pvi.algorithms import DRPVI
+
+    makers = {
+        "TV": lambda **k: R2PVI("tv", 0.3, beta=0.05, **k),
+        "chi2": lambda **k: R2PVI("chi2", 1.0, beta=0.05, **k),
+        "DRPVI": lambda **k: DRPVI(0.1, beta=0.05, **k),
+        "PEVI": lambda **k: PEVI(beta=0.05, **k),
+    }
+    out = {}
+    for name in names:
+        out[name] = timed(lambda n=name: makers[n]().fit(ds))
+    for name in pooled:
+        out[name + " pooled"] = timed(lambda n=name: makers[n](time_homogeneous=True).fit(ds))
+    return out
+
+
+def run_case(case):
+    t0 = time.perf_counter()
+    if case.startswith("rbf"):
+        K = int(case[3:])
+        ds, d = dense_dataset(K, (4, 4, 6, 6))
+        names, pooled = ["TV", "DRPVI", "chi2", "PEVI"], (["TV"] if K <= 300 else [])
+    elif case.startswith("tiles"):
+        K = int(case[5:])
+        ds, d = sparse_dataset(K)
+        names, pooled = ["TV", "DRPVI", "chi2", "PEVI"], []
+    elif case == "act":
+        return act_case()
+    else:
+        raise SystemExit(f"unknown case {case!r}")
+    build = time.perf_counter() - t0
+    phi, rewards, _, _ = ds.step(H // 2)
+    primal, dual = step_floor(phi, rewards)
+    res = {"case": case, "K": K, "d": d, "build_s": build, "floor_primal_s": H * primal,
+           "floor_dual_s": H * dual, "floor_s": H * min(primal, dual)}
+    res.update({f"fit {k}": v for k, v in fits(ds, names, pooled).items()})
+    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return res
+
+
+def act_case(n_states=2000):
+    """Per-state act time at d = 450 (one state per call, as in a rollout)."""
+    from r2pvi import PEVI, R2PVI
+
+    ds, d = dense_dataset(300, (3, 3, 5, 5))
+    fmap, _ = rbf_map((3, 3, 5, 5))
+    rng = np.random.default_rng(1)
+    obs = rng.uniform(LOW / 4, HIGH / 4, size=(n_states, 4))
+    feats = np.stack([fmap(obs, np.full(n_states, a)) for a in range(A)], axis=1)
+    res = {"case": "act", "d": d}
+    for name, est in (("PEVI", PEVI(beta=0.05)), ("R2PVI-TV", R2PVI("tv", 0.3, beta=0.05))):
+        est.fit(ds)
+        t = timed(lambda e=est: [e.act(feats[i:i + 1], 10) for i in range(n_states)])
+        res[f"act {name} ms/state"] = 1e3 * t / n_states
+    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return res
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", nargs="+",
+                        default=["act", "rbf300", "rbf1000", "tiles300", "tiles1000"])
+    parser.add_argument("--threads", type=int, default=1, help="BLAS threads per case")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        print(json.dumps(run_case(args.child)))
+        return
+    env = dict(os.environ, OPENBLAS_NUM_THREADS=str(args.threads),
+               OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
+    print(f"# {time.strftime('%Y-%m-%d %H:%M')} UTC, load {os.getloadavg()[0]:.1f}, "
+          f"{args.threads} BLAS thread(s), H = {H}")
+    for case in args.cases:
+        proc = subprocess.run([sys.executable, __file__, "--child", case], env=env,
+                              capture_output=True, text=True)
+        if proc.returncode:
+            print(f"{case}: failed\n{proc.stderr[-2000:]}")
+            continue
+        res = json.loads(proc.stdout.strip().splitlines()[-1])
+        floor = res.get("floor_s")
+        print(f"\n## {case}")
+        for key, value in res.items():
+            if key == "case":
+                continue
+            extra = ""
+            if key.startswith("fit") and floor:
+                extra = f"   ({value / floor:.2f}x floor)"
+            shown = f"{value:.3f}" if isinstance(value, float) else value
+            print(f"  {key:28s} {shown}{extra}")
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
