@@ -278,7 +278,7 @@ def test_variance_weights_follow_the_formula_from_the_first_pass():
     assert not np.allclose(va.weights_, first.weights_)
     # the library's helper computes the same weights from the first pass's fitted model
     first_model = backward_induction(ds, rule, beta=beta, gamma=gamma, penalty="l1",
-                                     r_max=r_max, reward_weights=theta)
+                                     r_max=r_max, reward_weights=theta, value_moments=True)
     np.testing.assert_allclose(variance_weights(ds, first_model, top), weights, rtol=1e-10)
 
 

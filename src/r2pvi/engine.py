@@ -234,6 +234,7 @@ def backward_induction(
     sample_weights: np.ndarray | None = None,
     time_homogeneous: bool = False,
     form: str = "auto",
+    value_moments: bool = False,
 ) -> FittedModel:
     """Run the backward induction of Algorithms 1-2 with ``rule`` estimating ``w_h``.
 
@@ -259,6 +260,9 @@ def backward_induction(
     form : {"auto", "primal", "dual"}
         Factorization of each Gram matrix (see :class:`~r2pvi.duals.GramFactor`); "auto"
         takes the cheaper from the shapes.
+    value_moments : bool, default False
+        Also store ``E_h([V_{h+1}, V_{h+1}^2])`` (``FittedModel.value_moments``), which the
+        variance-aware variants' first pass needs; two more regressions per step.
     """
     H, d = dataset.horizon, dataset.n_features
     # The step-major data: in memory, on disk or in Dask arrays (None: a dataset that only
@@ -306,7 +310,8 @@ def backward_induction(
                 else:
                     v_next = source.next_state_values(h, qmax)
                 next_state_values[h] = v_next
-                moments[h] = E(np.stack([v_next, v_next * v_next], axis=1))
+                if value_moments:  # only the variance-aware variants need them
+                    moments[h] = np.stack([E(v_next), E(v_next * v_next)], axis=1)
                 w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
             if inv_diag is None:  # after the rule: reuses what the rule formed (dual form)
                 inv_diag = E.inverse_diagonal()
@@ -318,7 +323,8 @@ def backward_induction(
                 ellip[h] = step_ellip
     finally:
         release()  # the duals' reusable work buffers
-    return FittedModel(weights, thetas, inv_diags, ellip, next_state_values, moments)
+    return FittedModel(weights, thetas, inv_diags, ellip, next_state_values,
+                       moments if value_moments else None)
 
 
 def _apply_rule(rule: StepRule, E: RidgeExpectation, factor: GramFactor, v, ctx: StepContext):

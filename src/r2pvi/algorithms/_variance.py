@@ -36,11 +36,15 @@ def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float
     >>> rng = np.random.default_rng(0)
     >>> phi = rng.dirichlet(np.ones(3), size=(40, 4))
     >>> ds = OfflineDataset.from_features(phi, phi[..., 0], rng.dirichlet(np.ones(3), (40, 4, 2)))
-    >>> first = backward_induction(ds, RidgeRule(), beta=0.0, gamma=1.0, penalty="l1", r_max=1.0)
+    >>> first = backward_induction(ds, RidgeRule(), beta=0.0, gamma=1.0, penalty="l1", r_max=1.0,
+    ...                            value_moments=True)
     >>> w = variance_weights(ds, first, v_upper=4.0)
     >>> w.shape, bool(np.all((w > 0) & (w <= 1))), bool(np.all(w[-1] == 1))
     ((4, 40), True, True)
     """
+    if first.value_moments is None:
+        raise ValueError("variance_weights needs the first pass's value moments: run "
+                         "backward_induction(..., value_moments=True)")
     H, K = dataset.horizon, dataset.n_trajectories
     n = first.next_state_values.shape[1]  # K, or H K for pooled steps (time_homogeneous)
     weights = np.ones((H, n))
@@ -67,9 +71,9 @@ class VarianceAwareMixin:
         return variance_weights(dataset, first, dataset.horizon * params["r_max"])
 
     def _fit_model(self, dataset: OfflineDataset, params: dict) -> FittedModel:
-        first = self._run_engine(dataset, params)
         if not params.get("variance_aware", False):
-            return first
+            return self._run_engine(dataset, params)
+        first = self._run_engine(dataset, params, value_moments=True)
         weights = self._sample_weights(dataset, first, params)
         if np.all(weights == 1.0):  # sigma^2 = 1 everywhere: the second pass is the first
             return first

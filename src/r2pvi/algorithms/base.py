@@ -135,7 +135,8 @@ class LinearEstimator(SklearnCompatMixin):
             raise TypeError(f"time_homogeneous must be True or False, got {value!r}")
         return bool(value)
 
-    def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None):
+    def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None,
+                    value_moments: bool = False):
         try:
             return backward_induction(
                 dataset,
@@ -148,6 +149,7 @@ class LinearEstimator(SklearnCompatMixin):
                 sample_weights=sample_weights,
                 time_homogeneous=params.get("time_homogeneous", False),
                 form=self._gram_form,
+                value_moments=value_moments,
             )
         except GramMatrixError as exc:
             raise _gram_error_with_step(exc, dataset, params["gamma"], sample_weights) from None
