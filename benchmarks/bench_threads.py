@@ -18,20 +18,11 @@ import os
 import statistics
 import time
 
-import numpy as np
+from bench_fit import make_dataset  # the same synthetic data (run from benchmarks/ or its parent)
 from threadpoolctl import ThreadpoolController, threadpool_info
 
 import r2pvi
 from r2pvi._threads import _env_threads
-
-
-def make_dataset(K, H, d, A=2, seed=0):
-    rng = np.random.default_rng(seed)
-    phi = rng.dirichlet(np.ones(d), size=(K, H))
-    next_phi = rng.dirichlet(np.ones(d), size=(K, H, A))
-    theta = rng.uniform(0, 1, size=(H, d))
-    rewards = np.einsum("khd,hd->kh", phi, theta)
-    return r2pvi.OfflineDataset.from_features(phi, rewards, next_phi), theta
 
 
 def main(argv=None):

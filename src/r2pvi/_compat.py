@@ -18,6 +18,8 @@ instance, raising it) does, when it is installed.
 
 from __future__ import annotations
 
+import inspect
+
 __all__ = ["SklearnCompatMixin", "not_fitted_error"]  # and NotFittedError, built lazily
 
 _NOT_FITTED: type | None = None
@@ -92,3 +94,28 @@ class SklearnCompatMixin:
             requires_fit=True,
             non_deterministic=False,
         )
+
+
+class KeywordParams:
+    """scikit-learn's parameter protocol for classes whose ``__init__`` only stores its
+    keyword parameters: ``get_params``/``set_params`` (validated at the next ``fit``)."""
+
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        return [p.name for p in sig.parameters.values() if p.name != "self"]
+
+    def get_params(self, deep: bool = True) -> dict:
+        """The parameters as a dict (scikit-learn convention)."""
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params):
+        """Set parameters by name and return ``self`` (validated at the next ``fit``)."""
+        valid = self._param_names()
+        for name, value in params.items():
+            if name not in valid:
+                raise ValueError(
+                    f"invalid parameter {name!r} for {type(self).__name__}; valid: {valid}"
+                )
+            setattr(self, name, value)
+        return self

@@ -12,7 +12,7 @@ import numbers
 
 import numpy as np
 
-from .._compat import SklearnCompatMixin, not_fitted_error
+from .._compat import KeywordParams, SklearnCompatMixin, not_fitted_error
 from .._io import file_array, file_error, load_npz, save_npz
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
@@ -31,7 +31,7 @@ ESTIMATOR_REGISTRY: dict[str, type] = {}
 _FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
 
 
-class LinearEstimator(SklearnCompatMixin):
+class LinearEstimator(KeywordParams, SklearnCompatMixin):
     """Base class of the pessimistic value-iteration estimators (PEVI, R2PVI, DRPVI, ...).
 
     Subclasses declare their parameters in ``__init__`` and implement :meth:`_make_rule`
@@ -54,26 +54,6 @@ class LinearEstimator(SklearnCompatMixin):
         ESTIMATOR_REGISTRY[cls.__name__] = cls
 
     # ------------------------------------------------------------------ parameters
-    @classmethod
-    def _param_names(cls) -> list[str]:
-        sig = inspect.signature(cls.__init__)
-        return [p.name for p in sig.parameters.values() if p.name != "self"]
-
-    def get_params(self, deep: bool = True) -> dict:
-        """The estimator's parameters as a dict (scikit-learn convention)."""
-        return {name: getattr(self, name) for name in self._param_names()}
-
-    def set_params(self, **params):
-        """Set parameters by name and return ``self`` (validated at the next ``fit``)."""
-        valid = self._param_names()
-        for name, value in params.items():
-            if name not in valid:
-                raise ValueError(
-                    f"invalid parameter {name!r} for {type(self).__name__}; valid: {valid}"
-                )
-            setattr(self, name, value)
-        return self
-
     def __repr__(self) -> str:
         defaults = {
             p.name: p.default

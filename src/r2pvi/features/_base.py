@@ -7,7 +7,7 @@ import numbers
 
 import numpy as np
 
-from .._compat import not_fitted_error
+from .._compat import KeywordParams, not_fitted_error
 
 __all__ = ["ObservationTransformer", "as_observations", "check_positive_int_or_seq"]
 
@@ -54,7 +54,7 @@ def check_positive_int_or_seq(value, name: str, n_dims: int, minimum: int = 1) -
     return arr.astype(np.int64)
 
 
-class ObservationTransformer:
+class ObservationTransformer(KeywordParams):
     """Base of the observation maps: scikit-learn transformer conventions.
 
     ``__init__`` stores keyword parameters; :meth:`fit` validates them, learns the
@@ -65,26 +65,6 @@ class ObservationTransformer:
     sparse = False
 
     # ------------------------------------------------------------------ parameters
-    @classmethod
-    def _param_names(cls) -> list[str]:
-        sig = inspect.signature(cls.__init__)
-        return [p.name for p in sig.parameters.values() if p.name != "self"]
-
-    def get_params(self, deep: bool = True) -> dict:
-        """The parameters as a dict (scikit-learn convention)."""
-        return {name: getattr(self, name) for name in self._param_names()}
-
-    def set_params(self, **params):
-        """Set parameters by name and return ``self`` (validated at the next ``fit``)."""
-        valid = self._param_names()
-        for name, value in params.items():
-            if name not in valid:
-                raise ValueError(
-                    f"invalid parameter {name!r} for {type(self).__name__}; valid: {valid}"
-                )
-            setattr(self, name, value)
-        return self
-
     def __repr__(self) -> str:
         sig = inspect.signature(type(self).__init__).parameters
         shown = []
