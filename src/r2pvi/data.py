@@ -296,14 +296,9 @@ class OfflineDataset:
         >>> ds.phi.shape, ds.next_phi.shape
         ((20, 3, 3), (20, 3, 2, 3))
         """
-        if not callable(feature_map):
-            raise TypeError("feature_map must be callable: feature_map(states, actions) -> (n, d)")
+        _check_feature_map(feature_map, n_actions)
         if next_values is not None and not callable(next_values):
             raise TypeError("next_values must be callable: next_values(next_states) -> (n, A)")
-        if isinstance(n_actions, bool) or not isinstance(n_actions, int | np.integer):
-            raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
-        if n_actions < 1:
-            raise ValueError(f"n_actions must be >= 1, got {n_actions}")
         act = np.asarray(actions)
         if act.ndim != 2:
             raise ValueError(f"actions must have shape (K, H), got {act.shape}")
@@ -422,12 +417,7 @@ class OfflineDataset:
         >>> ds.phi[0, 0], ds.next_phi[0, 0, 1]
         (array([0., 1., 0., 0.]), array([0., 0., 0., 1.]))
         """
-        if not callable(feature_map):
-            raise TypeError("feature_map must be callable: feature_map(states, actions) -> (n, d)")
-        if isinstance(n_actions, bool) or not isinstance(n_actions, int | np.integer):
-            raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
-        if n_actions < 1:
-            raise ValueError(f"n_actions must be >= 1, got {n_actions}")
+        _check_feature_map(feature_map, n_actions)
         states = np.asarray(states)
         next_states = np.asarray(next_states)
         actions_arr = np.asarray(actions)
@@ -767,3 +757,13 @@ def _readonly(a):
     v = a.view()
     v.flags.writeable = False
     return v
+
+
+def _check_feature_map(feature_map, n_actions) -> None:
+    """A callable ``feature_map(states, actions) -> (n, d)`` and an integer ``n_actions >= 1``."""
+    if not callable(feature_map):
+        raise TypeError("feature_map must be callable: feature_map(states, actions) -> (n, d)")
+    if isinstance(n_actions, bool) or not isinstance(n_actions, int | np.integer):
+        raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
+    if n_actions < 1:
+        raise ValueError(f"n_actions must be >= 1, got {n_actions}")
