@@ -5,8 +5,6 @@ but where ``CI`` or ``R2PVI_REQUIRE_EXTRAS`` is set a missing extra is an error,
 never pass by skipping them.
 """
 
-import importlib
-import os
 import re
 import subprocess
 import sys
@@ -14,24 +12,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from extras import require
 
 from r2pvi import R2PVI
 from r2pvi.envs import AmericanPutOption, FiniteLinearMDP, HardInstance, SimulatedLinearMDP
 from r2pvi.envs.gym import as_gymnasium_env
 from r2pvi.evaluation import expected_return
 
-REQUIRE_EXTRAS = bool(os.environ.get("CI") or os.environ.get("R2PVI_REQUIRE_EXTRAS"))
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "environments.md"
 
-
-def require(module):
-    """Import an optional dependency: skip without it, unless CI demands the extras."""
-    try:
-        return importlib.import_module(module)
-    except ImportError as exc:
-        if REQUIRE_EXTRAS:
-            raise
-        pytest.skip(f"optional dependency {module!r} is not installed ({exc})")
 
 
 @pytest.fixture

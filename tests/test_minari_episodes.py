@@ -1,26 +1,13 @@
 """Minari datasets made by Minari's own API from an environment r2pvi did not define."""
 
-import importlib
-import os
 
 import numpy as np
 import pytest
+from extras import require
 
 from r2pvi import OfflineDataset
 from r2pvi.episodes import episode_observations
 from r2pvi.features import NormalizedRBF, cross_actions
-
-REQUIRE_EXTRAS = bool(os.environ.get("CI") or os.environ.get("R2PVI_REQUIRE_EXTRAS"))
-
-
-def require(module):
-    """Import an optional dependency: skip without it, unless CI demands the extras."""
-    try:
-        return importlib.import_module(module)
-    except ImportError as exc:
-        if REQUIRE_EXTRAS:
-            raise
-        pytest.skip(f"optional dependency {module!r} is not installed ({exc})")
 
 
 @pytest.fixture
