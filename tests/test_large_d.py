@@ -311,6 +311,14 @@ def test_pooled_factors_one_gram_matrix(monkeypatch):
     DRPVI(0.2).set_params(time_homogeneous=True).fit(ds)
     assert calls == [(100, 8)]  # one factorization of all H K = 100 transitions
     calls.clear()
+    real_primal = engine._primal_factor  # per-step fits accumulate Lambda_h by chunk
+
+    def count_primal(gram, gamma, weights, shape):
+        calls.append(tuple(shape))
+        return real_primal(gram, gamma, weights, shape)
+
+    monkeypatch.setattr(engine, "_primal_factor", count_primal)
+    monkeypatch.setattr(engine, "GramFactor", real)
     DRPVI(0.2).fit(ds)
     assert calls == [(20, 8)] * 5
     with pytest.raises(TypeError, match="time_homogeneous"):

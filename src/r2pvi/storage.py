@@ -65,7 +65,9 @@ __all__ = [
 FORMAT_VERSION = 2
 KIND = "r2pvi.OfflineDataset"
 MANIFEST = "manifest.json"
+GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)
 CHUNK = 1 << 13  # trajectories per chunk when streaming a step (buffers of a few MB)
+GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
 
 
 def _float_dtype(dtype) -> np.dtype:
@@ -485,12 +487,29 @@ class StepSource:
     """
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
-                 nonnegative_phi: bool | None = None, chunk: int = CHUNK):
+                 nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None):
         self.phi, self.rewards, self.next = phi, rewards, nxt
         self.extras = dict(extras or {})
         self.nonnegative_phi = nonnegative_phi
         self.chunk = int(chunk)
         self.horizon, self.n_trajectories, self.n_features = phi.shape
+        # Phi_h^T Phi_h of every step (float64, no ridge), a cache: stored with the data, or
+        # kept from the first fit that formed them (see gram()).
+        self._grams = [None] * self.horizon if grams is None else list(grams)
+
+    def gram(self, h: int) -> np.ndarray | None:
+        """The unweighted ``Phi_h^T Phi_h (d, d)`` of step ``h`` if known (stored with the
+        dataset or formed by an earlier fit), else None. A copy: the caller may modify it."""
+        g = self._grams[h]
+        return None if g is None else np.array(g, dtype=np.float64)
+
+    def remember_gram(self, h: int, gram: np.ndarray) -> None:
+        """Keep ``Phi_h^T Phi_h`` (formed by a fit) for later fits; kept for
+        ``d <= GRAM_CACHE_MAX_D`` only (``H d^2`` floats)."""
+        if self.n_features <= GRAM_CACHE_MAX_D and self._grams[h] is None:
+            g = np.array(gram, dtype=np.float64)
+            g.flags.writeable = False
+            self._grams[h] = g
 
     @property
     def n_actions(self) -> int:
@@ -518,6 +537,25 @@ class StepSource:
             e = min(shape[0], s + self.chunk)
             out[s:e] = field.read(h, s, e)
         return out
+
+    def phi_chunks(self, h: int):
+        """``(start, stop, rows)`` over step ``h``'s taken-action features, ``rows`` a float64
+        ``(stop - start, d)`` array valid until the next iteration (reused buffers; on disk
+        a reader thread fetches the next chunk while the caller computes on this one)."""
+        field, K = self.phi, self.n_trajectories
+        shape = (min(self.chunk, K), self.n_features)
+        if isinstance(field, FileField):
+            yield from _prefetched(field, h, K, self.chunk, shape)
+            return
+        reads = field.chunks(h, self.chunk)  # a Dask array: its own chunks
+        f64 = None
+        for s, e, rows in reads:
+            if rows.dtype != np.float64 or not rows.flags.c_contiguous:
+                if f64 is None or f64.shape[0] < e - s:
+                    f64 = np.empty((max(e - s, shape[0]), shape[1]))
+                np.copyto(f64[: e - s], rows)
+                rows = f64[: e - s]
+            yield s, e, rows
 
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
@@ -740,7 +778,14 @@ def open_directory(path, feature_map=None) -> StepSource:
     extras = {}
     for name in mf.get("extras", []):
         extras[name] = np.load(path / f"extra_{name}.npy", mmap_mode="r", allow_pickle=False)
-    return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"))
+    grams = None
+    if "gram" in files:
+        grams = np.load(path / files["gram"], allow_pickle=False)
+        H, d_ = int(mf["horizon"]), int(mf["n_features"])
+        if grams.shape != (H, d_, d_) or grams.dtype != np.float64:
+            raise ValueError(f"{path / files['gram']} must hold (H, d, d) = {(H, d_, d_)} "
+                             f"float64 Gram matrices, got {grams.shape} {grams.dtype}")
+    return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams)
 
 
 def _temp_dir(path: Path) -> Path:
@@ -763,6 +808,13 @@ def _finish(tmp: Path, path: Path, manifest: dict, overwrite: bool) -> Path:
     else:
         os.replace(tmp, path)  # atomic: readers see the old state or the complete dataset
     return path
+
+
+def _add_gram(gram: np.ndarray, rows: np.ndarray) -> None:
+    """``gram += X^T X`` for rows ``X (n, d)`` in float64 (by blocks of ``CHUNK`` rows)."""
+    for s in range(0, rows.shape[0], CHUNK):
+        x = np.asarray(rows[s:s + CHUNK], dtype=np.float64)
+        gram += x.T @ x
 
 
 def _write_npy_header(fh, shape, dtype):
@@ -813,8 +865,17 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
             phi_kind = "map"
             put("observations", source.phi.observations, source.phi.observations.dtype)
             put("actions", source.phi.actions, source.phi.actions.dtype)
-        else:
-            put("phi", source.phi, store)
+        else:  # with the Gram matrices of the stored (rounded) features, as they stream by
+            grams = np.zeros((source.horizon, source.n_features, source.n_features))
+
+            def gram_of_stored(h, s, e, rows):
+                rows = np.asarray(rows, dtype=store)
+                _add_gram(grams[h], rows)
+                return rows
+
+            put("phi", source.phi, store, gram_of_stored)
+            files["gram"] = GRAM_FILE
+            np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
         put("rewards", source.rewards, np.float64)
         nxt = source.next
         H, K, d = source.phi.shape
@@ -984,6 +1045,7 @@ class DatasetWriter:
                       "next_phi": ((H, K, A, d), self.dtype)}
             if any_nv:
                 fields["next_values"] = ((H, K, A), np.float64)
+            grams = np.zeros((H, d, d))
             for name, (shape, dt) in fields.items():
                 shards = [FileField(tmp / f"shard{i:06d}" / f"{name}.npy") if
                           (name != "next_values" or has) else None
@@ -994,11 +1056,14 @@ class DatasetWriter:
                         for (k, _), f in zip(self._shards, shards, strict=True):
                             rows = (np.full((k, A), np.nan) if f is None else f.read(h))
                             fh.write(np.ascontiguousarray(rows, dtype=dt).tobytes())
+                            if name == "phi":
+                                _add_gram(grams[h], rows)
                 for f in shards:
                     if f is not None:
                         f.close()
             for i in range(len(self._shards)):
                 shutil.rmtree(tmp / f"shard{i:06d}")
+            np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
             fl = self._flags
             if self.check_simplex:
                 warn_simplex("phi", fl[0], fl[1], 2)
@@ -1007,7 +1072,7 @@ class DatasetWriter:
                 "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
                 "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
                 "dtype": self.dtype.name, "next": "stored",
-                "files": {name: f"{name}.npy" for name in fields},
+                "files": {**{name: f"{name}.npy" for name in fields}, "gram": GRAM_FILE},
                 "shapes": {name: list(shape) for name, (shape, _) in fields.items()},
                 "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
             }
