@@ -9,13 +9,17 @@ reports the process's peak resident memory (``ru_maxrss``):
 
 ``disk``: K trajectories (d = 30, H = 20, A = 2, synthetic simplex features, float32) written
 with ``r2pvi.DatasetWriter``; then the time to read the whole dataset once from the page
-cache (the second of two reads), and the fit time and peak RSS of R2PVI-TV, -KL, -chi^2 and
-DRPVI on ``OfflineDataset.open(path)``.
+cache (the second of two reads), and the fit time, CPU time (all threads) and peak RSS of
+R2PVI-TV, -KL, -chi^2 and DRPVI on ``OfflineDataset.open(path)``. The writer stores each
+step's Gram matrix with the data, so a TV step from disk is one pass of matrix-vector products
+over its features. On a shared machine the CPU-time ratios are the steadier ones; the load
+average is printed with every row.
 
 ``scaling``: stored 2-D observations (float32), int8 actions and a normalized-RBF x action
 feature map (d = 30), written with ``OfflineDataset.from_observations(...).save(path)``;
 then the R2PVI-TV fit time for each K. The features are computed chunk by chunk while
-fitting; only a step's (K, d) taken-action features are held in memory.
+fitting (the Gram matrix and the regressions are accumulated by chunk: nothing of size K d is
+held); the fitted model keeps the (H, K) next-state values.
 
 Data goes to ``--dir`` (default ``/tmp/r2pvi-bench``); check ``df -h`` first: the K = 1e6
 feature dataset takes 7.3 GB, the K = 1e7 observation dataset 5 GB. ``--keep`` reuses data
@@ -143,7 +147,7 @@ def child(task: dict) -> dict:
 
     threadpool_limits(task["blas_threads"])
     path = Path(task["path"])
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if task["what"] == "read":  # every file once, by chunk into one reused buffer
         total = 0
         for f in sorted(path.glob("*.npy")):
@@ -160,6 +164,8 @@ def child(task: dict) -> dict:
         est = estimator(task["what"]).fit(ds)
         out = {"weights_sum": float(est.weights_.sum())}
     out["seconds"] = time.perf_counter() - t0
+    out["cpu_seconds"] = time.process_time() - c0  # every thread of the process
+    out["load"] = os.getloadavg()[0]
     out["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return out
 
@@ -180,31 +186,41 @@ def run_child(**task) -> dict:
 def disk(args):
     path = Path(args.dir) / f"features-K{args.K}"
     if not (args.keep and (path / "manifest.json").exists()):
+        from threadpoolctl import threadpool_limits
+
         t0 = time.perf_counter()
-        write_features(path, args.K)
+        with threadpool_limits(BLAS_THREADS):  # the writer forms each step's Gram matrix
+            write_features(path, args.K)
         print(f"wrote {path} in {time.perf_counter() - t0:.1f} s")
     size = dir_size(path)
     print(f"K = {args.K}, d = {D}, H = {H}, A = {A}, float32 on disk: {size / 2**30:.2f} GiB")
     run_child(what="read", path=str(path))  # warm the page cache
     read = run_child(what="read", path=str(path))
-    print(f"{'task':<12} {'seconds':>8} {'x read':>7} {'peak RSS MiB':>13}")
-    print(f"{'read once':<12} {read['seconds']:8.2f} {1.0:7.2f} {read['peak_rss_mib']:13.0f}")
-    for name in args.estimators:
-        r = run_child(what=name, path=str(path))
+    print(f"{'task':<12} {'seconds':>8} {'x read':>7} {'CPU s':>7} {'x read':>7} "
+          f"{'peak RSS MiB':>13} {'load':>5}")
+
+    def row(name, r):
         print(f"{name:<12} {r['seconds']:8.2f} {r['seconds'] / read['seconds']:7.2f} "
-              f"{r['peak_rss_mib']:13.0f}", flush=True)
+              f"{r['cpu_seconds']:7.2f} {r['cpu_seconds'] / read['cpu_seconds']:7.2f} "
+              f"{r['peak_rss_mib']:13.0f} {r['load']:5.1f}", flush=True)
+
+    row("read once", read)
+    for name in args.estimators:
+        row(name, run_child(what=name, path=str(path)))
 
 
 def scaling(args):
     print(f"observations (2-D float32) + RBF x action feature map, d = {D}, H = {H}, A = {A}")
-    print(f"{'K':>10} {'GiB':>6} {'fit s':>8} {'us / traj':>10} {'peak RSS MiB':>13}")
+    print(f"{'K':>10} {'GiB':>6} {'fit s':>8} {'us / traj':>10} {'CPU us / traj':>14} "
+          f"{'peak RSS MiB':>13} {'load':>5}")
     for K in (int(float(k)) for k in args.Ks):
         path = Path(args.dir) / f"obs-K{K}"
         if not (args.keep and (path / "manifest.json").exists()):
             write_observations(path, K)
         r = run_child(what="R2PVI-TV", path=str(path), map=True)
         print(f"{K:>10} {dir_size(path) / 2**30:6.2f} {r['seconds']:8.1f} "
-              f"{1e6 * r['seconds'] / K:10.2f} {r['peak_rss_mib']:13.0f}", flush=True)
+              f"{1e6 * r['seconds'] / K:10.2f} {1e6 * r['cpu_seconds'] / K:14.2f} "
+              f"{r['peak_rss_mib']:13.0f} {r['load']:5.1f}", flush=True)
 
 
 def float32(args):

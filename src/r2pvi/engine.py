@@ -33,8 +33,8 @@ from .duals.operators import (
     GramFactor,
     GramMatrixError,
     RidgeExpectation,
-    choose_form,
     cholesky_solve,
+    choose_form,
 )
 from .sparse import StackedSparse, stack_rows
 
@@ -264,15 +264,15 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         if self._rows is None:
             rows = self.source.phi_step(self.h, self.buffers.get("phi"))
             self.buffers["phi"] = rows
-            if self._factor is None and (self.weights is not None
-                                         or self.source.gram(self.h) is None):
+            if self._factor is None:
                 w = self.weights
-                gram = (rows if w is None else rows * w[:, None]).T @ rows
-                if w is None:
-                    self.source.remember_gram(self.h, gram)
+                gram = None if w is not None else self.source.gram(self.h)
+                if gram is None:
+                    gram = (rows if w is None else rows * w[:, None]).T @ rows
+                    if w is None:
+                        self.source.remember_gram(self.h, gram)
                 self._factor = _primal_factor(gram, self.gamma, w, rows.shape)
-            factor = self.factor  # (from the known Gram matrix: no read)
-            factor.phi = rows  # from now on a plain primal factor over the rows
+            self._factor.phi = rows  # from now on a plain primal factor over the rows
             self._rows = rows
         return self._rows
 
