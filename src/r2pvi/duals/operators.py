@@ -418,6 +418,16 @@ class GramFactor:
             self._ginv = self.cinv.T @ self.cinv
         return self._ginv
 
+    def _primal_solve(self, b):
+        """``Lambda^{-1} b = L^{-T} L^{-1} b``. Small d: two generic solves on ``L`` (an LU
+        each, nothing kept). From ``_TRTRI_FROM`` on, a generic solve costs ``O(d^3)`` per
+        call, so the triangular inverse is formed once (``d^3 / 3``) and every solve is two
+        products: measured at d = 1152 (one BLAS thread) 2.6 ms against 94 ms per solve."""
+        if self.d < _TRTRI_FROM:
+            return cholesky_solve(self.chol, b)
+        linv = self.linv
+        return linv.T @ (linv @ b)
+
     def _dual_apply(self, z):
         """``G^{-1} z = C^{-T} C^{-1} z`` for ``z (n,)`` or ``(n, m)``."""
         ci = self.cinv
@@ -448,14 +458,14 @@ class GramFactor:
         """Ridge weights ``Lambda^{-1} Phi^T W y`` for ``y (n,)`` or ``(n, m)``."""
         if self.form == "primal":
             yw = y if self.weights is None else (y.T * self.weights).T
-            return cholesky_solve(self.chol, np.asarray(self.phi.T @ yw))
+            return self._primal_solve(np.asarray(self.phi.T @ yw))
         ys = y if self.root is None else (y.T * self.root).T
         return np.asarray(self.psi.T @ self._dual_apply(ys))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``Lambda^{-1} b`` for ``b (d,)`` or ``(d, m)``."""
         if self.form == "primal":
-            return cholesky_solve(self.chol, b)
+            return self._primal_solve(b)
         psi = self.psi
         return (b - np.asarray(psi.T @ self._dual_apply(np.asarray(psi @ b)))) / self.gamma
 
@@ -593,7 +603,7 @@ class RidgeExpectation(ExpectationOperator):
         # Row i of Lambda^{-1} Phi^T W is (Lambda^{-1} e_i)^T Phi^T W.
         unit = np.zeros((self.n_dims, dims.size))
         unit[dims, np.arange(dims.size)] = 1.0
-        return cholesky_solve(self.chol, unit).T @ xw.T
+        return self.factor._primal_solve(unit).T @ xw.T
 
     def weight_columns(self, src: np.ndarray, out: np.ndarray) -> np.ndarray:
         if not self.primal_dense:
