@@ -297,6 +297,29 @@ def test_pooled_equals_per_step_when_every_step_sees_the_same_transitions(name):
                                    atol=1e-10)
 
 
+def test_pooled_views_and_stacked_copies_agree(tmp_path):
+    """In memory the pooled rows are views of the step-major arrays (no copy); read from a
+    dataset directory, or held as sparse rows, they are stacked step by step: the same fit."""
+    rng = np.random.default_rng(13)
+    phi, rewards, next_phi = _data(rng, 20, 4, 6)
+    next_values = np.full(next_phi.shape[:-1], np.nan)
+    next_values[:5, 1] = 0.5  # known values travel with their rows
+    ds = OfflineDataset.from_features(phi, rewards, next_phi, next_values)
+    views = engine._pooled_views(ds)
+    assert views is not None and np.shares_memory(views[0], ds._source.phi.array)
+    stacked = ds.save(tmp_path / "ds")
+    opened = OfflineDataset.open(stacked)
+    assert engine._pooled_views(opened) is None
+    sparse = SparseOfflineDataset.from_rows(
+        [sp.csr_matrix(phi[:, h]) for h in range(4)], rewards,
+        [sp.csr_matrix(next_phi[:, h].reshape(-1, 6)) for h in range(4)], 2, next_values)
+    for make in (lambda: R2PVI("tv", 0.3, beta=0.1), lambda: DRPVI(0.2, beta=0.1)):
+        want = _fit(make, ds, time_homogeneous=True).weights_
+        for other in (opened, sparse):
+            np.testing.assert_allclose(_fit(make, other, time_homogeneous=True).weights_,
+                                       want, atol=1e-10)
+
+
 def test_pooled_factors_one_gram_matrix(monkeypatch):
     rng = np.random.default_rng(13)
     ds = OfflineDataset.from_features(*_data(rng, 20, 5, 8))
@@ -404,3 +427,42 @@ def test_tampered_elliptical_factors_are_named(tmp_path):
         bad = save_npz(tmp_path / f"{field}.npz", kind, version, a, m)
         with pytest.raises(ValueError, match=field):
             load(bad)
+
+
+def _ragged_episodes(rng, n, horizon, n_actions, obs_dim=2):
+    """Episodes of 1..horizon+1 steps, terminated, truncated or cut at the horizon."""
+    eps = []
+    for k in range(n):
+        T = int(rng.integers(1, horizon + 2))
+        eps.append({"observations": rng.uniform(-1, 1, (T + 1, obs_dim)),
+                    "actions": rng.integers(0, n_actions, T), "rewards": rng.random(T),
+                    "terminations": np.r_[np.zeros(T - 1, bool), [k % 3 == 0]],
+                    "truncations": np.r_[np.zeros(T - 1, bool), [k % 3 == 1]]})
+    return eps
+
+
+def test_sparse_feature_maps_give_sparse_episode_datasets():
+    """from_episodes with a sparse tile coding: the dense dataset's every array and fit,
+    with no row densified (a SparseOfflineDataset)."""
+    from r2pvi.features import TileCoding, cross_actions
+
+    rng = np.random.default_rng(3)
+    H, A = 6, 3
+    eps = _ragged_episodes(rng, 25, H, A)
+    obs = np.concatenate([e["observations"] for e in eps])
+    maps = [cross_actions(TileCoding(n_tilings=4, n_tiles=4, sparse=s).fit(obs), A)
+            for s in (False, True)]
+    dense, sparse = (OfflineDataset.from_episodes(eps, m, A, horizon=H) for m in maps)
+    assert isinstance(sparse, SparseOfflineDataset)
+    assert not isinstance(dense, SparseOfflineDataset)
+    for h in range(H):
+        a, b = dense.step(h), sparse.step(h)
+        assert sp.issparse(b[0]) and isinstance(b[2], StackedSparse)
+        np.testing.assert_array_equal(a[0], b[0].toarray())
+        np.testing.assert_array_equal(a[1], b[1])
+        np.testing.assert_array_equal(a[2], b[2].matrix.toarray().reshape(a[2].shape))
+        if h < H - 1:
+            np.testing.assert_array_equal(a[3], b[3])
+    for est in (R2PVI("tv", 0.3, beta=0.05), PEVI(beta=0.1), DRPVI(0.2, beta=0.05)):
+        w_dense = est.fit(dense).weights_.copy()
+        np.testing.assert_allclose(est.fit(sparse).weights_, w_dense, rtol=0, atol=1e-10)
