@@ -259,10 +259,44 @@ def test_elliptical_factors_save_load_and_old_format(tmp_path):
     meta = {"estimator": "PEVI", "params": params, "fit_params": est._fit_params, "n_actions": 2}
     old = load(save_npz(tmp_path / "v1.npz", "estimator", 1, arrays, meta))
     np.testing.assert_allclose(old.q_values(feat, 1), est.q_values(feat, 1), atol=1e-12)
+    # Sparse rows (version 3): R = C^-1 Psi saved as its two factors, Psi in CSR pieces.
     rng2 = np.random.default_rng(10)
     _, sparse = _both(*_data(rng2, 10, 2, 30))
-    with pytest.raises(TypeError, match="sparse features"):
-        PEVI().fit(sparse).save(tmp_path / "s")
+    feat = _sparse_simplex(rng2, (4, 2, 30))
+    for th in (False, True):
+        est = PEVI(beta=0.3, time_homogeneous=th).fit(sparse)
+        path = est.save(tmp_path / f"s{th}")
+        with np.load(path, allow_pickle=False) as npz:
+            assert "elliptical_r" not in npz.files and "elliptical_cinv" in npz.files
+        back = load(path)
+        for h in range(2):
+            np.testing.assert_array_equal(back.q_values(feat, h), est.q_values(feat, h))
+
+
+def test_tampered_sparse_elliptical_factors_are_named(tmp_path):
+    import json
+
+    _, sparse = _both(*_data(np.random.default_rng(17), 10, 2, 30))
+    good = PEVI(beta=0.3).fit(sparse).save(tmp_path / "good")
+    with np.load(good, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    meta = json.loads(str(arrays.pop("__r2pvi_meta__")))
+    ptr = arrays["elliptical_psi_indptr"]
+    for field, change in (
+            ("elliptical_psi_indices",
+             lambda a, m: a.update(elliptical_psi_indices=a["elliptical_psi_indices"] + 30)),
+            ("elliptical_psi_indptr",
+             lambda a, m: a.update(elliptical_psi_indptr=ptr[:, ::-1].copy())),
+            ("elliptical_psi_indptr",
+             lambda a, m: a.update(elliptical_psi_indptr=ptr.astype(float))),
+            ("elliptical_cinv", lambda a, m: a.update(elliptical_cinv=np.ones((2, 3, 4)))),
+            ("elliptical_storage", lambda a, m: m.update(elliptical_storage="csc"))):
+        a, m = dict(arrays), json.loads(json.dumps(meta))
+        change(a, m)
+        kind, version = m.pop("kind"), m.pop("format_version")
+        bad = save_npz(tmp_path / f"{field}.npz", kind, version, a, m)
+        with pytest.raises(ValueError, match=field):
+            load(bad)
 
 
 # ----------------------------------------------------------------------------- pooled steps
