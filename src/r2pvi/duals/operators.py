@@ -264,6 +264,13 @@ def _triangular_inverse(lower: np.ndarray) -> np.ndarray:
     return np.tril(inv)
 
 
+def _lower_solve(lower: np.ndarray, b: np.ndarray, trans: str = "N") -> np.ndarray:
+    """``L^{-1} b`` (``trans="N"``) or ``L^{-T} b`` (``"T"``) for a lower-triangular ``L``."""
+    from scipy.linalg import solve_triangular
+
+    return solve_triangular(lower, b, lower=True, trans=trans, check_finite=False)
+
+
 def choose_form(n: int, d: int, sparse: bool = False) -> str:
     """Primal (d x d) or dual (n x n, Woodbury) factorization of ``Lambda``: dual when d > n.
 
@@ -398,9 +405,7 @@ class GramFactor:
             if self.sparse:
                 self._u = np.asarray((psi.T @ self.cinv.T).T)
             else:
-                from scipy.linalg import solve_triangular
-
-                self._u = solve_triangular(self.dual_chol, psi, lower=True, check_finite=False)
+                self._u = _lower_solve(self.dual_chol, psi)
         return self._u
 
     @property
@@ -408,7 +413,10 @@ class GramFactor:
         """``Z = G^{-1} Psi`` (n x d, dense features, dual form; computed once): one GEMM gives
         both the weight matrix ``M = Z^T W^{1/2}`` and ``diag(Psi^T G^{-1} Psi)``."""
         if getattr(self, "_z", None) is None:
-            self._z = self.ginv @ self.psi
+            if self.sparse:
+                self._z = self.ginv @ self.psi
+            else:  # C^-T U: one triangular solve (n^2 d / 2), no n x n inverse
+                self._z = _lower_solve(self.dual_chol, self.u, trans="T")
         return self._z
 
     @property
@@ -460,12 +468,17 @@ class GramFactor:
             yw = y if self.weights is None else (y.T * self.weights).T
             return self._primal_solve(np.asarray(self.phi.T @ yw))
         ys = y if self.root is None else (y.T * self.root).T
+        if not self.sparse:  # Psi^T G^-1 = U^T C^-1 with U (needed for the diagonal anyway)
+            return self.u.T @ _lower_solve(self.dual_chol, ys)
         return np.asarray(self.psi.T @ self._dual_apply(ys))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``Lambda^{-1} b`` for ``b (d,)`` or ``(d, m)``."""
         if self.form == "primal":
             return self._primal_solve(b)
+        if not self.sparse:
+            u = self.u
+            return (b - u.T @ (u @ b)) / self.gamma
         psi = self.psi
         return (b - np.asarray(psi.T @ self._dual_apply(np.asarray(psi @ b)))) / self.gamma
 
