@@ -66,7 +66,10 @@ FORMAT_VERSION = 2
 KIND = "r2pvi.OfflineDataset"
 MANIFEST = "manifest.json"
 GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)
-CHUNK = 1 << 13  # trajectories per chunk when streaming a step (buffers of a few MB)
+# Trajectories per chunk when streaming a step. Small enough that a chunk's float64 buffer
+# stays in a core's cache between the cast and the products (about 1 MB for d = 30, A = 2):
+# at K = 1e6 the next-state pass took 30-40% less CPU than with 8192 rows.
+CHUNK = 1 << 11
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
 
 
