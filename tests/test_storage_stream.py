@@ -101,12 +101,12 @@ class Reads:
 
 
 @pytest.mark.parametrize("name, gram_known, passes", [
-    ("TV", True, 1), ("TV", False, 1), ("PEVI", True, 1), ("KL", True, 2)])
+    ("TV", True, 1), ("TV", False, 1), ("PEVI", True, 1), ("KL", True, 1)])
 def test_each_step_reads_its_features_as_few_times_as_the_rule_needs(
         saved, name, gram_known, passes, monkeypatch):
-    """TV and PEVI: one read per step for Lambda, theta (rewards) and the rule's regression;
-    KL: two (its two regressions); none holds the whole step. chi^2 and DRPVI read the step
-    whole, once."""
+    """TV, PEVI and KL: one read per step for Lambda, theta (rewards) and the rule's
+    regressions (KL's two: ``E.apply_each``); none holds the whole step. chi^2 and DRPVI
+    read the step whole, once."""
     _, path = saved
     ds = OfflineDataset.open(path)
     if not gram_known:

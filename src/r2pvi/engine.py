@@ -285,6 +285,15 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         self._pending.append(y)
 
     # ------------------------------------------------------------------ the operator
+    def apply_each(self, ys) -> list:
+        """``[E(y) for y in ys]`` in one read of the step's features."""
+        ys = list(ys)
+        for y in ys:
+            if not any(y is p for p in self._pending) and not any(
+                    y is done for done, _ in self._done):
+                self.include(y)
+        return [self(y) for y in ys]
+
     def __call__(self, y: np.ndarray) -> np.ndarray:
         if any(p is y for p in self._pending):
             self._pass(None)

@@ -63,6 +63,12 @@ class ExpectationOperator:
         """Explicit weights ``M[dims]`` of shape (len(dims), n); all rows when ``dims`` is None."""
         raise NotImplementedError
 
+    def apply_each(self, ys) -> list:
+        """``[E(y) for y in ys]``: a dual that needs several expectations at once asks for them
+        together, so that an operator reading its data by chunk
+        (:class:`~r2pvi.engine.ChunkedRidgeExpectation`) applies them all in one read."""
+        return [self(y) for y in ys]
+
     @property
     def matrix(self) -> np.ndarray:
         """The full (d, n) weight matrix (computed once, then cached)."""

@@ -102,8 +102,7 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     near = ex > 0.5
     if near.any():
         um[near] = np.expm1(z[near])
-    u = E(ex)
-    um = E(um)
+    u, um = E.apply_each((ex, um))
     s = np.ones(E.n_dims) if E.nonnegative else u - um
     live = s > 0.0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
