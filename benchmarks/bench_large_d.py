@@ -12,14 +12,14 @@ state-feedback controller, reward 1 while the pole is up; episodes are not cut a
 - ``act``: per-state acting time at d = 450 (RBF 3 x 3 x 5 x 5 x 2 actions), PEVI
   (elliptical penalty) against R2PVI-TV (l1 penalty).
 
-The floor is the issue's: for one step, one K x d Gram matrix + Cholesky + solve in the
-primal (d x d) and in the dual (K x K) form; ``floor = H * min(primal, dual)``, timed in the
-same run. The pooled-step fit has its own floor (:func:`pooled_floor`): one Gram matrix of the
-H K rows, then at every step one pass over the H K A next-state features and one over the
-H K rows — memory-bound, H times the data read per step. Every case runs in its own subprocess (peak RSS is the child's ``ru_maxrss``), with
-one BLAS thread by default. Times are the process's CPU seconds (``time.process_time``): with
-one thread they are the work done, whatever else runs on the machine (on a quiet machine they
-equal wall time; ``--wall`` reports wall time instead).
+The floor is the issue's: for one step, one K x d Gram matrix + Cholesky + solve in the primal
+(d x d) and in the dual (K x K) form; ``floor = H * min(primal, dual)``, timed in the same run.
+The pooled-step fit has its own floor (:func:`pooled_floor`): one Gram matrix of the H K rows,
+then at every step one pass over the H K A next-state features and one over the H K rows —
+memory-bound, H times the data read per step. Every case runs in its own subprocess (peak RSS
+is the child's ``ru_maxrss``), with one BLAS thread by default. Times are the process's CPU
+seconds (``time.process_time``): with one thread they are the work done, whatever else runs on
+the machine (on a quiet machine they equal wall time; ``--wall`` reports wall time instead).
 
     python benchmarks/bench_large_d.py                   # every case
     python benchmarks/bench_large_d.py --cases rbf300 tiles300 act
