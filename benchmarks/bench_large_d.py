@@ -152,8 +152,9 @@ def sparse_dataset(K, seed=0):
 def step_floor(phi, rewards, gamma=1.0, repeats=3):
     """(primal, dual) seconds of one Gram matrix + Cholesky + solve for a K x d step.
 
-    Sparse rows: the dual's Gram matrix is a sparse product (then a dense K x K Cholesky);
-    the primal (a dense d x d factorization) is not timed above d = 4096.
+    Sparse rows: the dual's Gram matrix is a sparse product (then a dense K x K Cholesky),
+    the primal's a dense |U| x |U| matrix on the used features (:func:`sparse_step_floor`).
+    Dense rows: the primal (a dense d x d factorization) is not timed above d = 4096.
     """
     if sp.issparse(phi):
         return sparse_step_floor(phi, rewards, gamma, repeats)
