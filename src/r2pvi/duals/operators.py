@@ -413,8 +413,12 @@ class GramFactor:
     # ------------------------------------------------------------------ pieces
     @property
     def _phi_used(self):
-        """The rows on the used features (all of them for dense rows)."""
-        return self.phi if self.cols is None else self.phi[:, self.cols]
+        """The rows on the used features (all of them for dense rows; computed once)."""
+        if self.cols is None:
+            return self.phi
+        if getattr(self, "_used_rows", None) is None:
+            self._used_rows = self.phi[:, self.cols]
+        return self._used_rows
 
     def _on_used(self, used_part, fill):
         """A ``(d, ...)`` array equal to ``fill`` off the used features and ``used_part`` on
@@ -508,6 +512,7 @@ class GramFactor:
         if self.form != "dual" and self.cols is None:
             raise ValueError("restrict needs the dual form or sparse rows")
         new = copy.copy(self)
+        new._used_rows = None
         if self.form == "primal":  # the used features keep their factor, in their order
             where = np.full(self.d, -1)
             where[np.asarray(cols)] = np.arange(len(cols))
@@ -552,8 +557,10 @@ class GramFactor:
         if self.form == "primal":
             phi = self._phi_used
             xw = phi if self.weights is None else _scale_rows(phi, self.weights)
-            xw_t = xw.T.toarray() if self.sparse else xw.T
-            return self._on_used(self.linv.T @ (self.linv @ xw_t), 0.0)
+            if self.sparse:  # Lambda_U^{-1} (|U|^3) times sparse rows: nnz |U|, not |U|^2 n
+                linv = self.linv
+                return self._on_used(np.asarray(xw @ (linv.T @ linv)).T, 0.0)
+            return self.linv.T @ (self.linv @ xw.T)
         if not self.sparse:
             m = np.array(self.z.T, order="C")  # a copy: z stays cached
             return m if self.root is None else np.multiply(m, self.root, out=m)
