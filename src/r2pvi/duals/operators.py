@@ -284,7 +284,6 @@ class _UsedFeaturesFactor:
 
     def __init__(self, linv, cols, gamma):
         self.linv, self.cols, self.gamma = linv, np.asarray(cols), float(gamma)
-        self.shape = (linv.shape[0] + 1, None)
 
     def apply_rows(self, x):
         xs = sp.csr_matrix(x) if sp.issparse(x) else np.asarray(x)
