@@ -228,6 +228,22 @@ class ChunkedRidgeExpectation(RidgeExpectation):
     truncation cumulants: chi^2, DRPVI, DRVI-L, KL's exact fallback for tiny moments) reach
     for :attr:`phi`; the operator then reads the step's ``(K, d)`` float64 features into one
     reused buffer and behaves as :class:`~r2pvi.duals.RidgeExpectation` from there on.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from r2pvi.storage import ArrayField, StepSource, StoredNext
+    >>> rng = np.random.default_rng(0)
+    >>> phi = rng.random((2, 50, 3))                       # (H, K, d), step-major
+    >>> src = StepSource(ArrayField(phi), ArrayField(rng.random((2, 50))),
+    ...                  StoredNext(ArrayField(rng.random((2, 50, 2, 3)))), chunk=16)
+    >>> E = ChunkedRidgeExpectation(src, h=1, gamma=1.0)
+    >>> y = rng.random(50)
+    >>> x = phi[1]                                         # the normal equations
+    >>> bool(np.allclose(E(y), np.linalg.solve(x.T @ x + np.eye(3), x.T @ y)))
+    True
+    >>> E.passes                                           # Lambda and E(y): one read
+    1
     """
 
     def __init__(self, source, h: int, gamma: float, weights=None,
