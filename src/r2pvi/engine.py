@@ -163,11 +163,9 @@ def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonn
     """
     flat, lead = _rows(phi)  # one GEMM, not a batch of small products
     if kind == "l1" and beta != 0.0:
-        # One pass over the features for the linear part and the penalty together.
         scale = -beta * np.sqrt(inv_diag)
-        if nonneg:
-            both = np.asarray(flat @ np.stack([weights_h, scale], axis=1))
-            q = both[:, 0] + both[:, 1]
+        if nonneg:  # |phi| = phi: one matrix-vector product (a GEMM with 2 columns is ~6x slower)
+            q = np.asarray(flat @ (weights_h + scale))
         else:
             q = np.asarray(flat @ weights_h) + abs(flat) @ scale
     else:
