@@ -313,6 +313,10 @@ class _KLProblem:
             self.shift = np.full(dims.size, lowest)
             self.rows = None
         self.shared_shift = bool(np.all(self.shift == self.shift[0]))
+        self._w3 = None
+        if self.shared_shift:
+            self._y_shared = v - self.shift[0]
+            self._y_negative = bool(np.any(self._y_shared < 0))
         row_sums = E(np.ones_like(v))[dims]
         # Distributions (non-negative rows): normalize by the row sums, exact up to rounding,
         # so that u -> 1 as b -> inf exactly. Otherwise u_i = E_i[exp(-V/b)] + c_i with
@@ -440,6 +444,16 @@ class _KLProblem:
                 np.expm1(z[0], out=z[0])
                 np.multiply(z[1], self.v, out=z[1])
                 np.multiply(z[1], self.v, out=z[2])
+            elif self.shared_shift:
+                # One exp per (factor, point); the powers of y sit in the weight rows
+                # (:meth:`_moment_rows`), so the three moments are one batched product.
+                y = self._y_shared
+                e = np.multiply.outer(-1.0 / bb, y, out=z[0])
+                if self._y_negative:  # points outside a factor's support: weight 0
+                    np.minimum(e, 0.0, out=e)
+                np.exp(e, out=e)
+                w3 = self._moment_rows(rows)
+                mom = np.matmul(w3, e[:, :, None])[:, :, 0].T / self.norm[rows]
             else:
                 y = self.v[None, :] - self.shift[rows, None]
                 np.multiply(y, (-1.0 / bb)[:, None], out=z[0])
@@ -447,7 +461,8 @@ class _KLProblem:
                 np.exp(z[0], out=z[0])
                 np.multiply(z[0], y, out=z[1])
                 np.multiply(z[1], y, out=z[2])
-            mom = self._diagonal(z.reshape(3 * m, n), rows) / self.norm[rows]
+            if is_plain or not self.shared_shift:
+                mom = self._diagonal(z.reshape(3 * m, n), rows) / self.norm[rows]
             if is_plain:
                 res = self._plain(mom[0], mom[1], mom[2], bb, self.base[rows], self.rho[rows],
                                   self.cap[rows])
@@ -457,10 +472,24 @@ class _KLProblem:
             g[sel], d1[sel], d2[sel] = res
         return g, d1, d2
 
-    def _diagonal(self, zs, rows):
-        """``E_{dims[rows[j]]}(zs[k m + j])``, k = 0, 1, 2, by the explicit weight rows: (3, m)."""
-        m = rows.size
-        if self.rows is None:  # the operator's weight rows, computed once per call
+    def _moment_rows(self, rows):
+        """``(m, 3, n)``: the weight rows of factors ``rows`` (positions in ``dims``) times
+        ``1, y, y^2`` (``y = V - shift``, shared shift), formed once per call: then the
+        moments ``E_i[y^k exp(-y/b_i)]`` of a Newton step are one batched matrix-vector
+        product."""
+        if self._w3 is None:
+            w = self._weight_rows()
+            y = self._y_shared
+            w3 = buffer("klball.w3", (w.shape[0], 3, w.shape[1]))
+            w3[:, 0] = w
+            np.multiply(w, y, out=w3[:, 1])
+            np.multiply(w3[:, 1], y, out=w3[:, 2])
+            self._w3 = w3
+        return self._w3 if rows.size == self._w3.shape[0] else self._w3[rows]
+
+    def _weight_rows(self):
+        """The operator's weight rows of the factors ``dims`` (computed once per call)."""
+        if self.rows is None:
             factors = _factorization(self.E)
             if factors is None:
                 full = self.E.matrix
@@ -469,6 +498,12 @@ class _KLProblem:
                 psi, r = factors
                 out = buffer("klball.rows", (self.dims.size, psi.shape[0]))
                 self.rows = np.matmul(r[self.dims], psi.T, out=out)
+        return self.rows
+
+    def _diagonal(self, zs, rows):
+        """``E_{dims[rows[j]]}(zs[k m + j])``, k = 0, 1, 2, by the explicit weight rows: (3, m)."""
+        m = rows.size
+        self._weight_rows()
         w = self.rows if m == self.rows.shape[0] else self.rows[rows]
         return np.stack([np.einsum("jn,jn->j", w, zs[k * m:(k + 1) * m]) for k in range(3)])
 
