@@ -573,6 +573,12 @@ class RidgeExpectation(ExpectationOperator):
         self.primal_dense = self.factor.form == "primal" and not sp.issparse(phi)
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
+        if self.primal_dense and self.weights is None and np.ndim(y) == 1:
+            # One vector (the duals' case): ``y^T Phi`` (a GEMV on C-ordered rows, faster than
+            # ``Phi^T y``) and ``Lambda^{-1} = L^{-T} L^{-1}`` by two d x d products with the
+            # triangular inverse, which the step forms anyway (``inverse_diagonal``).
+            linv = self.factor.linv
+            return linv.T @ (linv @ (np.asarray(y, dtype=float) @ self.phi))
         return self.factor.regress(y)
 
     @property
