@@ -111,6 +111,10 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     u = E(ex)
     um = E(um)
     s = np.ones(E.n_dims) if E.nonnegative else u - um
+    if np.all(s > 0.0) and np.all(u >= _TINY):  # the usual case, with d-sized operations only
+        # log(u/s) = log1p(um/s): the accurate form when u/s is not small
+        log_norm = np.where(u > 0.5 * s, np.log1p(um / s), np.log(u) - np.log(s))
+        return np.minimum(s * (shift - lam * log_norm), upper)
     live = s > 0.0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         safe_s = np.where(live, s, 1.0)
