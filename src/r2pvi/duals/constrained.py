@@ -353,10 +353,15 @@ class _KLProblem:
         r = np.arange(k.size)
         best = g[r, k]
         t, f1, f2 = tgrid[k], dg[r, k], d2g[r, k]
-        lo = np.where(f1 > 0, t, tgrid[np.maximum(k - 1, 0)])  # bracket around the best
-        hi = np.where(f1 > 0, tgrid[np.minimum(k + 1, n_grid - 1)], t)
+        k_lo = np.where(f1 > 0, k, np.maximum(k - 1, 0))  # bracket around the best
+        k_hi = np.where(f1 > 0, np.minimum(k + 1, n_grid - 1), k)
+        lo, hi = tgrid[k_lo], tgrid[k_hi]
+        # First step: the maximizer of the quintic through the bracket's ends (values and two
+        # derivatives, known from the grid), a far better start than Newton from one end.
+        first = _hermite_argmax(lo, hi, g[r, k_lo], dg[r, k_lo], d2g[r, k_lo], g[r, k_hi],
+                                dg[r, k_hi], d2g[r, k_hi])
         ftol = _FTOL * self.scale
-        for _ in range(max_iter):
+        for it in range(max_iter):
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 newton = t - f1 / f2
                 gain = 0.5 * f1 * f1 / np.abs(f2)
@@ -365,6 +370,8 @@ class _KLProblem:
                 break
             ok = (f2 < 0) & (newton > lo) & (newton < hi)
             step = np.where(ok, newton, 0.5 * (lo + hi))
+            if it == 0:
+                step = np.where(np.isnan(first), step, first)
             idx = np.flatnonzero(go)
             gi, d1i, d2i = self.per_factor(idx, np.exp(step[idx]))
             t[idx], f1[idx], f2[idx] = step[idx], d1i, d2i
@@ -388,7 +395,12 @@ class _KLProblem:
             y = buffer("klball.grid", (n, 3 * j))
             e1 = np.multiply.outer(self.v, -1.0 / b, out=y[:, :j])
             ex = np.exp(e1, out=y[:, j:2 * j])
-            np.expm1(e1, out=e1)  # exp(-V/b) - 1
+            # exp(-V/b) - 1: ex - 1 carries ex's rounding (<= 2^-53), which moves G = -b log u
+            # by about b 2^-53 sum |M_i| (< 1e-14 of the values for b <= 64 max |V|); expm1,
+            # exact to the last digit, for larger b (the grid is increasing).
+            big = int(np.searchsorted(b, _EXPM1_FROM * self.scale, side="right"))
+            np.expm1(e1[:, big:], out=e1[:, big:])
+            np.subtract(ex[:, :big], 1.0, out=e1[:, :big])
             ex *= self.v[:, None]
             np.multiply(ex, self.v[:, None], out=y[:, 2 * j:])
             mom = self.E(y)[self.dims]
@@ -485,7 +497,10 @@ class _KLProblem:
             np.multiply(w, y, out=w3[:, 1])
             np.multiply(w3[:, 1], y, out=w3[:, 2])
             self._w3 = w3
-        return self._w3 if rows.size == self._w3.shape[0] else self._w3[rows]
+        if rows.size == self._w3.shape[0]:
+            return self._w3
+        return np.take(self._w3, rows, axis=0,
+                       out=buffer("klball.w3rows", (rows.size,) + self._w3.shape[1:]))
 
     def _weight_rows(self):
         """The operator's weight rows of the factors ``dims`` (computed once per call)."""
@@ -570,6 +585,31 @@ class _KLProblem:
         return g, d1, d2
 
 
+def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
+    """Per row, the maximizer in ``(t0, t1)`` of the quintic with the given values, first and
+    second derivatives at both ends (NaN where the data are not finite, the interval is empty
+    or no interior maximum is found): a starting point for the safeguarded Newton iteration,
+    which alone decides the result."""
+    h = t1 - t0
+    with np.errstate(all="ignore"):
+        c1, c2 = h * d0, 0.5 * h * h * dd0
+        a = g1 - (g0 + c1 + c2)
+        b = h * d1 - (c1 + 2.0 * c2)
+        c = h * h * dd1 - 2.0 * c2
+        c3, c4, c5 = 10.0 * a - 4.0 * b + 0.5 * c, -15.0 * a + 7.0 * b - c, 6.0 * a - 3.0 * b + 0.5 * c
+        # Newton on p'(s) = 0 from the end with the larger value, kept in [0, 1].
+        s = np.where(g1 > g0, 1.0, 0.0)
+        for _ in range(iters):
+            p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
+            p2 = 2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))
+            s = np.clip(s - p1 / np.where(p2 < 0, p2, -np.inf), 0.0, 1.0)
+        p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
+        good = (h > 0) & (s > 0.0) & (s < 1.0) & np.isfinite(s) & np.isfinite(
+            g0 + g1 + d0 + d1 + dd0 + dd1) & (np.abs(p1) <= 1e-6 * (np.abs(c1) + np.abs(h * d1)))
+    return np.where(good, t0 + h * s, np.nan)
+
+
+_EXPM1_FROM = 64.0  # on the grid, expm1 (not exp - 1) for b above this many max |V|
 _B_FLOOR = 1e-9  # smallest b searched (b_min=None), relative to the values
 _B_CAP = 1e16  # largest b searched, relative to the values: rho below ~1e-30 acts as 0
 _FTOL = 1e-14  # Newton stops when its predicted gain is below this, relative to the values

@@ -644,7 +644,9 @@ class RidgeExpectation(ExpectationOperator):
         linv = self.chol_inverse
         nb = fsum.shape[0]
         # (nb * moments, d) @ Lambda^{-1} as one GEMM (it is symmetric), then (moments, d, nb).
-        sums = (fsum.reshape(-1, d) @ (linv.T @ linv)).reshape(nb, moments, d).transpose(1, 2, 0)
+        sums = (fsum.reshape(-1, d) @ (linv.T @ linv)).reshape(nb, moments, d)
+        # (moments, d, nb) C-ordered: the per-factor running sums over blocks read rows.
+        sums = np.ascontiguousarray(sums.transpose(1, 2, 0))
         if self.nonnegative_features is None:
             self.nonnegative_features = bool((self.phi >= 0).all())
         nonneg = self.nonnegative_features and self.weights is None

@@ -164,6 +164,11 @@ class BlockScan:
             self.e2_start = self._p2 + tail * self.start**2
             self.e2_top = s2.sum(axis=1)
         self.slope = np.abs(tail - s0) + sb.sabs
+        # dE1/dalpha inside a block is the weight of the points above alpha: the weight after
+        # the block plus a part of the block's, which lies between the sums of the block's
+        # negative and positive weights, (s0 -+ sum |M|) / 2.
+        self.b_lo = tail - 0.5 * (s0 + sb.sabs)
+        self.b_hi = tail - 0.5 * (s0 - sb.sabs)
         self._columns = sb.columns
 
     def segments(self, rows, blocks):
@@ -193,13 +198,18 @@ def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=No
     best = np.maximum(best, top)
     # Bounds on each block: E1 within slope * width of its start, E2 within slope * the
     # block's range of alpha^2; g grows with E1 (convex in the clipped E1) and falls with E2.
+    # dE1/dalpha = B in [b_lo, b_hi] and dE2 = B d(alpha^2) (alpha^2 monotone on a block that
+    # does not straddle 0; else the cruder bound with |B| <= slope).
     span1 = scan.end - scan.start
     start2, end2 = scan.start**2, scan.end**2
-    span2 = np.maximum(start2, end2) - np.where((scan.start < 0) & (scan.end > 0), 0.0,
-                                                np.minimum(start2, end2))
-    e1_lo = scan.e1_start - scan.slope * span1
-    e1_hi = scan.e1_start + scan.slope * span1
-    e2_lo = scan.e2_start - scan.slope * span2
+    straddle = (scan.start < 0) & (scan.end > 0)
+    e1_lo = scan.e1_start + np.minimum(scan.b_lo, 0.0) * span1
+    e1_hi = scan.e1_start + np.maximum(scan.b_hi, 0.0) * span1
+    delta2 = end2 - start2
+    e2_lo = scan.e2_start + np.minimum(np.minimum(scan.b_lo * delta2, scan.b_hi * delta2), 0.0)
+    if straddle.any():
+        span2 = np.maximum(start2, end2)[straddle]
+        e2_lo[:, straddle] = scan.e2_start[:, straddle] - scan.slope[:, straddle] * span2
     upper = np.maximum(chi2_objective(e1_lo, 0.0, lam, mean_clip),
                        chi2_objective(e1_hi, 0.0, lam, mean_clip))
     upper -= 0.25 / lam * (e2_lo if second_clip is None else np.clip(e2_lo, *second_clip))
@@ -216,8 +226,8 @@ def tv_ball_max(E: ExpectationOperator, v, rho) -> np.ndarray:
     scan = BlockScan(E, v, second_moment=False)
     f_start = scan.e1_start - rho[:, None] * scan.start
     best = np.maximum(f_start.max(axis=1), scan.e1_top - rho * scan.top)
-    # d/dalpha (E1 - rho alpha) = B - rho <= slope - rho inside a block.
-    upper = f_start + (scan.end - scan.start) * np.maximum(scan.slope - rho[:, None], 0.0)
+    # d/dalpha (E1 - rho alpha) = B - rho <= b_hi - rho inside a block.
+    upper = f_start + (scan.end - scan.start) * np.maximum(scan.b_hi - rho[:, None], 0.0)
     rows, blocks = np.nonzero(upper > best[:, None])
     if rows.size:
         a, b, _, al = scan.segments(rows, blocks)
