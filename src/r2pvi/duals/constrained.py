@@ -114,18 +114,21 @@ def tv_constrained(
     lowest = float(np.min(v))
     floor = lowest if v_min is None else min(float(v_min), lowest)
     y = v - floor  # >= 0, and exactly 0 at the lowest point when floor == min(v)
-    plain = E(v)
     if not np.any(rho > 0):
-        return plain
-    cap = np.clip(plain, lo, hi)
-    mass = E(np.ones_like(v))
+        return E(v)
     if method == "auto":
         method = "blockwise" if v.size >= 512 else "dense"
     with np.errstate(over="ignore", invalid="ignore"):  # rho alpha may overflow to inf
         if method == "dense":
             best = _tv_ball_cumulants(E, y, rho)
+            plain, mass = E(v), E(np.ones_like(v))
         else:
-            best = tv_ball_max(E, y, rho)
+            totals = {}
+            best = tv_ball_max(E, y, rho, totals)
+            # E_i(1) and E_i(v) from the scan's block sums; E_i(v) itself where rho_i = 0
+            mass = totals["mass"]
+            plain = E(v) if np.any(rho == 0) else totals["mean"] + floor * mass
+    cap = np.clip(plain, lo, hi)
     # alpha = V_min: E_i[y]_0 - 0 = 0 (a breakpoint already when floor == min(v))
     np.maximum(best, 0.0, out=best)
     best += floor * mass

@@ -171,6 +171,12 @@ class BlockScan:
         self.b_hi = tail - 0.5 * (s0 - sb.sabs)
         self._columns = sb.columns
 
+    def report(self, totals: dict | None) -> None:
+        """Put ``E_i(1)`` (``"mass"``) and ``E_i(v)`` (``"mean"``) into ``totals`` (if a dict)."""
+        if totals is not None:
+            totals["mass"] = self._total[:, 0]
+            totals["mean"] = self.e1_top
+
     def segments(self, rows, blocks):
         """Exact coefficients ``(a, b, c, alphas)``, each ``(P, 17)``, on every segment of the
         (factor, block) pairs ``(rows, blocks)``: on segment k ``E1 = a_k + b_k alpha`` and
@@ -190,9 +196,14 @@ class BlockScan:
         return last(a), last(b), last(c), al
 
 
-def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, extra=()):
-    """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc)."""
+def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, extra=(),
+                  totals: dict | None = None):
+    """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc).
+
+    ``totals``, a dict, receives ``"mass"`` and ``"mean"``: ``E_i(1)`` and ``E_i(v)`` from the
+    block sums (no further pass over the data)."""
     scan = BlockScan(E, v, extra)
+    scan.report(totals)
     best = chi2_objective(scan.e1_start, scan.e2_start, lam, mean_clip, second_clip).max(axis=1)
     top = chi2_objective(scan.e1_top, scan.e2_top, lam, mean_clip, second_clip)
     best = np.maximum(best, top)
@@ -220,10 +231,12 @@ def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=No
     return best
 
 
-def tv_ball_max(E: ExpectationOperator, v, rho) -> np.ndarray:
+def tv_ball_max(E: ExpectationOperator, v, rho, totals: dict | None = None) -> np.ndarray:
     """``max_k E_i([V]_alpha_k) - rho_i alpha_k`` over every breakpoint ``alpha_k`` (the
-    piecewise-linear TV-ball dual without its constant), by the same branch and bound."""
+    piecewise-linear TV-ball dual without its constant), by the same branch and bound;
+    ``totals`` as in :func:`blockwise_max`."""
     scan = BlockScan(E, v, second_moment=False)
+    scan.report(totals)
     f_start = scan.e1_start - rho[:, None] * scan.start
     best = np.maximum(f_start.max(axis=1), scan.e1_top - rho * scan.top)
     # d/dalpha (E1 - rho alpha) = B - rho <= b_hi - rho inside a block.

@@ -112,8 +112,10 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     um = E(um)
     s = np.ones(E.n_dims) if E.nonnegative else u - um
     if np.all(s > 0.0) and np.all(u >= _TINY):  # the usual case, with d-sized operations only
-        # log(u/s) = log1p(um/s): the accurate form when u/s is not small
-        log_norm = np.where(u > 0.5 * s, np.log1p(um / s), np.log(u) - np.log(s))
+        # log(u/s) = log1p(um/s): the accurate form when u/s is not small (both are
+        # evaluated; the unused one may be -inf)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_norm = np.where(u > 0.5 * s, np.log1p(um / s), np.log(u) - np.log(s))
         return np.minimum(s * (shift - lam * log_norm), upper)
     live = s > 0.0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -212,24 +214,30 @@ def chi2_regularized(
             w[rows] = g + _chi2_core(sub, v - g, lam, None, None, method)
         return _within_exact_chi2_bounds(E, v, lam, w)
     c = float(np.min(v)) if center else 0.0
-    w = _chi2_core(E, v - c if center else v, lam, mean_clip, second_clip, method)
+    totals = {}
+    w = _chi2_core(E, v - c if center else v, lam, mean_clip, second_clip, method, totals)
     if center and c != 0.0:
-        w = w + (c if E.nonnegative else c * row_sums(E))
+        if E.nonnegative:
+            w = w + c
+        else:  # E_i(1): from the branch and bound's block sums when it ran (no further pass)
+            w = w + c * (totals["mass"] if "mass" in totals else row_sums(E))
     if E.nonnegative and mean_clip is None and second_clip is None:
         w = _within_exact_chi2_bounds(E, v, lam, w)
     return w
 
 
-def _chi2_core(E, u, lam, mean_clip, second_clip, method):
-    """The exact maximum over alpha for values ``u`` (see :func:`chi2_regularized`)."""
+def _chi2_core(E, u, lam, mean_clip, second_clip, method, totals=None):
+    """The exact maximum over alpha for values ``u`` (see :func:`chi2_regularized`);
+    ``totals`` as in :func:`~r2pvi.duals.piecewise.blockwise_max` (blockwise only)."""
     lo_v, hi_v = float(np.min(u)), float(np.max(u))
     # E([V]^2_alpha) = C + B alpha^2 is monotone on a segment that does not contain alpha = 0.
     extra = (0.0,) if lo_v < 0.0 < hi_v else ()
-    solve = dense_max if method == "dense" else blockwise_max
     # For lam far below the values' resolution the quadratic term overflows: +-inf, and the
     # exact bounds (or the rule's range) take over.
     with np.errstate(over="ignore", invalid="ignore"):
-        return solve(E, u, lam, mean_clip, second_clip, extra)
+        if method == "dense":
+            return dense_max(E, u, lam, mean_clip, second_clip, extra)
+        return blockwise_max(E, u, lam, mean_clip, second_clip, extra, totals)
 
 
 def _within_exact_chi2_bounds(E, v, lam, w):
