@@ -649,7 +649,7 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
 
 _EXPM1_FROM = 64.0  # on the grid, expm1 (not exp - 1) for b above this many max |V|
 _LOCAL_STEP = 0.1  # spacing (in log b) of the local grid of _KLProblem._refine_locally
-_LOCAL_MAX = 8  # at most this many local evaluations, else no local grid
+_LOCAL_MAX = 12  # at most this many local evaluations, else no local grid
 _B_FLOOR = 1e-9  # smallest b searched (b_min=None), relative to the values
 _B_CAP = 1e16  # largest b searched, relative to the values: rho below ~1e-30 acts as 0
 _FTOL = 1e-14  # Newton stops when its predicted gain is below this, relative to the values
