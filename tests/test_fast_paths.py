@@ -1,0 +1,109 @@
+"""The fast paths of the duals (benchmarks/bench_fit.py) against their reference forms.
+
+Each test targets one shortcut: it compares the shortcut with the computation it replaces
+(or with brute force), on signed ridge weights where that matters.
+"""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from r2pvi.duals import RidgeExpectation, cholesky_gram, kl_regularized
+from r2pvi.duals._scratch import buffer, release
+from r2pvi.duals.constrained import _hermite_argmax
+from r2pvi.duals.operators import BLOCK
+from r2pvi.duals.piecewise import BlockScan
+
+
+def ridge(seed, n, d, signed=True):
+    rng = np.random.default_rng(seed)
+    phi = rng.normal(size=(n, d)) if signed else rng.dirichlet(np.ones(d), size=n)
+    return RidgeExpectation(phi, cholesky_gram(phi, 0.3)), rng
+
+
+def test_buffer_reuses_its_memory_for_smaller_shapes_and_grows_for_larger():
+    release()
+    a = buffer("t.key", (4, 5))
+    assert a.shape == (4, 5) and a.flags.c_contiguous
+    b = buffer("t.key", (3, 2))
+    assert b.shape == (3, 2) and b.flags.c_contiguous and np.shares_memory(a, b)
+    c = buffer("t.key", (7, 7))
+    assert c.shape == (7, 7) and not np.shares_memory(a, c)
+    release()
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 40), st.sampled_from([1, 3, 8]),
+       st.booleans())
+def test_one_vector_regression_equals_the_factor_solve(seed, n, d, signed):
+    E, rng = ridge(seed, n, d, signed)
+    y = rng.uniform(-5, 5, size=n)
+    ref = E.factor.regress(y)
+    np.testing.assert_allclose(E(y), ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from([40, 200, 777]), st.sampled_from([2, 7]),
+       st.booleans())
+def test_block_slope_bounds_hold_on_every_segment(seed, n, d, ties):
+    """``b_lo <= dE([V]_alpha)/dalpha <= b_hi`` on every segment of every block (the exact
+    slopes from the dense cumulants), with signed ridge weights."""
+    E, rng = ridge(seed, n, d)
+    v = rng.integers(0, 5, size=n).astype(float) if ties else rng.exponential(size=n)
+    scan = BlockScan(E, v, second_moment=False)
+    cum = E.truncation_cumulants(v)  # cum.b[:, k]: the slope on segment k
+    m = cum.b.shape[1]
+    blk = np.arange(m) // BLOCK
+    slack = 1e-9 * (1.0 + np.abs(cum.b).max())
+    assert np.all(cum.b >= scan.b_lo[:, blk] - slack)
+    assert np.all(cum.b <= scan.b_hi[:, blk] + slack)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-3, 3), min_size=6, max_size=6), st.floats(-2, 2),
+       st.floats(0.05, 1.5))
+def test_hermite_argmax_is_the_maximizer_of_a_quintic(coef, t0, h):
+    """Hermite data of a quintic determine it: the returned point is its maximizer on the
+    interval (brute force on a fine grid), or NaN when the maximum is at an end."""
+    p = np.polynomial.Polynomial(coef)
+    t1 = t0 + h
+    dp, ddp = p.deriv(), p.deriv(2)
+    got = _hermite_argmax(np.array([t0]), np.array([t1]), p(np.array([t0])),
+                          dp(np.array([t0])), ddp(np.array([t0])), p(np.array([t1])),
+                          dp(np.array([t1])), ddp(np.array([t1])))[0]
+    grid = np.linspace(t0, t1, 200_001)
+    vals = p(grid)
+    if np.isnan(got):
+        return  # allowed: no interior maximum was certified (the solver then bisects)
+    assert t0 < got < t1
+    # its value is the maximum up to the grid's resolution
+    assert p(got) >= vals.max() - 1e-9 * (1.0 + np.abs(vals).max())
+
+
+def test_hermite_argmax_refuses_non_finite_data():
+    nan = np.array([np.nan])
+    one = np.array([1.0])
+    out = _hermite_argmax(np.array([0.0]), one, -np.inf * one, one, -one, one, -one, -one)
+    assert np.isnan(out[0])
+    out = _hermite_argmax(np.array([0.0]), one, one, nan, -one, one, -one, -one)
+    assert np.isnan(out[0])
+
+
+@pytest.mark.parametrize("lam", [0.05, 1.0, 30.0, 63.0])
+def test_kl_without_expm1_matches_the_expm1_form(lam):
+    """Below the expm1 threshold (lam <= 64 spreads) ``exp(z) - 1`` replaces ``expm1(z)``:
+    the result matches the all-expm1 computation to 1e-13 of the values."""
+    E, rng = ridge(3, 300, 6, signed=False)
+    v = rng.uniform(0.0, 1.0, size=300)
+    shift = v.min()
+    z = -(v - shift) / lam
+    u, um = E(np.exp(z)), E(np.expm1(z))
+    s = u - um
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_norm = np.where(u > 0.5 * s, np.log1p(um / s), np.log(u / s))
+    ref = s * (shift - lam * log_norm)
+    got = kl_regularized(E, v, lam, v_max=10.0)
+    ok = np.isfinite(ref)  # (a factor whose estimate u_i <= 0 is capped: other code path)
+    assert ok.sum() >= 4
+    np.testing.assert_allclose(got[ok], np.minimum(ref, 10.0)[ok], rtol=0, atol=1e-13)
