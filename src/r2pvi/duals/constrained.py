@@ -630,7 +630,9 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
         a = g1 - (g0 + c1 + c2)
         b = h * d1 - (c1 + 2.0 * c2)
         c = h * h * dd1 - 2.0 * c2
-        c3, c4, c5 = 10.0 * a - 4.0 * b + 0.5 * c, -15.0 * a + 7.0 * b - c, 6.0 * a - 3.0 * b + 0.5 * c
+        c3 = 10.0 * a - 4.0 * b + 0.5 * c
+        c4 = -15.0 * a + 7.0 * b - c
+        c5 = 6.0 * a - 3.0 * b + 0.5 * c
         # Newton on p'(s) = 0 from the end with the larger value, kept in [0, 1].
         s = np.where(g1 > g0, 1.0, 0.0)
         for _ in range(iters):
