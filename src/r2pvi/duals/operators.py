@@ -98,7 +98,7 @@ class ExpectationOperator:
         Returns :class:`SortedBlocks` with ``alphas (p,)`` as in :meth:`sorted_weights` and,
         for every block of 16 consecutive sorted points, the sums of ``M``, ``M v`` and (with
         ``moments=3``) ``M v^2``, and an upper bound on the sum of ``|M|`` (each ``(d, p/16)``),
-        plus a function giving the exact weight columns of chosen blocks.
+        plus a function giving the exact weights of chosen (factor, block) pairs.
         """
         alphas, weights, m = self.sorted_weights(v, breakpoints_extra)
         d, p = weights.shape
@@ -107,7 +107,8 @@ class ExpectationOperator:
         sums = np.einsum("dbk,bjk->jdb", w3, powers)
         sabs = np.abs(w3).sum(axis=2)
         s2 = sums[2] if moments == 3 else None
-        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, lambda blk: w3[:, blk])
+        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs,
+                            lambda rows, blk: w3[rows, blk])
 
     def truncation_cumulants(self, v: np.ndarray, breakpoints_extra=()) -> TruncationCumulants:
         """Expectations of the truncated values ``[V]_alpha = min(V, alpha)`` for every alpha.
@@ -191,14 +192,15 @@ class SortedBlocks:
 
     Attributes: ``alphas (p,)``, ``m`` (real breakpoints), ``s0, s1, s2 (d, nb)`` the block sums
     of ``M``, ``M v``, ``M v^2``, ``sabs (d, nb)`` an upper bound on the block sums of ``|M|``,
-    and ``columns(blocks) -> (d, len(blocks), 16)`` the exact weights of chosen blocks.
+    and ``pairs(rows, blocks) -> (P, 16)`` the exact weights of factor ``rows[p]`` on block
+    ``blocks[p]``.
     """
 
-    __slots__ = ("alphas", "m", "s0", "s1", "s2", "sabs", "columns")
+    __slots__ = ("alphas", "m", "s0", "s1", "s2", "sabs", "pairs")
 
-    def __init__(self, alphas, m, s0, s1, s2, sabs, columns):
+    def __init__(self, alphas, m, s0, s1, s2, sabs, pairs):
         self.alphas, self.m, self.s0, self.s1, self.s2 = alphas, m, s0, s1, s2
-        self.sabs, self.columns = sabs, columns
+        self.sabs, self.pairs = sabs, pairs
 
 
 class TruncationCumulants:
@@ -659,29 +661,30 @@ class RidgeExpectation(ExpectationOperator):
             return super().sorted_blocks(v, breakpoints_extra, moments)
         # M = Lambda^{-1} X^T is linear in the features: sum each block in feature space
         # (one batched product), then map the (nb, d) sums by Lambda^{-1}. |M| is bounded by
-        # |Lambda^{-1}| |X|; exact columns are formed only for the blocks asked for.
+        # |Lambda^{-1}| |X|; exact weights are formed only for the (factor, block) pairs asked
+        # for: row i of Lambda^{-1} times the block's 16 feature rows.
         alphas, xs, m = self._sorted_features(v, breakpoints_extra)
         d = self.n_dims
         x3 = xs.reshape(-1, BLOCK, d)
         fsum = np.matmul(_block_powers(alphas, moments), x3)  # (nb, moments, d)
         linv = self.chol_inverse
+        gram_inv = linv.T @ linv  # Lambda^{-1} (d x d)
         nb = fsum.shape[0]
         # (nb * moments, d) @ Lambda^{-1} as one GEMM (it is symmetric), then (moments, d, nb).
-        sums = (fsum.reshape(-1, d) @ (linv.T @ linv)).reshape(nb, moments, d)
+        sums = (fsum.reshape(-1, d) @ gram_inv).reshape(nb, moments, d)
         # (moments, d, nb) C-ordered: the per-factor running sums over blocks read rows.
         sums = np.ascontiguousarray(sums.transpose(1, 2, 0))
         if self.nonnegative_features is None:
             self.nonnegative_features = bool((self.phi >= 0).all())
         nonneg = self.nonnegative_features and self.weights is None
         fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)
-        sabs = np.abs(linv.T @ linv) @ fabs.T
+        sabs = np.abs(gram_inv) @ fabs.T
 
-        def columns(blocks):
-            cols = x3[blocks].reshape(-1, d)  # (len * 16, d)
-            return (linv.T @ (linv @ cols.T)).reshape(d, len(blocks), BLOCK)
+        def pairs(rows, blocks):
+            return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]  # (P, 16)
 
         s2 = sums[2] if moments == 3 else None
-        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, columns)
+        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, pairs)
 
     def inverse_diagonal(self) -> np.ndarray:
         """``diag(Lambda^{-1})`` without forming the inverse (see :class:`GramFactor`)."""

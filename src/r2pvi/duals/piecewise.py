@@ -169,7 +169,7 @@ class BlockScan:
         # negative and positive weights, (s0 -+ sum |M|) / 2.
         self.b_lo = tail - 0.5 * (s0 + sb.sabs)
         self.b_hi = tail - 0.5 * (s0 - sb.sabs)
-        self._columns = sb.columns
+        self._pairs = sb.pairs
 
     def report(self, totals: dict | None) -> None:
         """Put ``E_i(1)`` (``"mass"``) and ``E_i(v)`` (``"mean"``) into ``totals`` (if a dict)."""
@@ -183,8 +183,7 @@ class BlockScan:
         ``E2 = c_k + b_k alpha^2``; the last column is the next block's start, reached by the
         block's last segment (its coefficients repeated). ``c`` is None without the second
         moment."""
-        uniq, inverse = np.unique(blocks, return_inverse=True)
-        wb = self._columns(uniq)[rows, inverse]  # (P, 16) exact weights
+        wb = self._pairs(rows, blocks)  # (P, 16) exact weights
         ab = self._al3[blocks]
         a = self._p1[rows, blocks, None] + np.cumsum(wb * ab, axis=1)
         b = self._total[rows] - (self._p0[rows, blocks, None] + np.cumsum(wb, axis=1))
