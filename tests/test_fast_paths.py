@@ -107,3 +107,20 @@ def test_kl_without_expm1_matches_the_expm1_form(lam):
     ok = np.isfinite(ref)  # (a factor whose estimate u_i <= 0 is capped: other code path)
     assert ok.sum() >= 4
     np.testing.assert_allclose(got[ok], np.minimum(ref, 10.0)[ok], rtol=0, atol=1e-13)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from([5, 1024, 2500]), st.sampled_from([1, 4]),
+       st.booleans())
+def test_apply_pair_equals_two_regressions(seed, n, d, weighted):
+    """The chunked pair of regressions (one pass over the rows) equals two calls, for any n
+    (a multiple of the chunk or not) and with variance weights (the fallback)."""
+    rng = np.random.default_rng(seed)
+    phi = rng.normal(size=(n, d))
+    w = rng.uniform(0.1, 2.0, size=n) if weighted else None
+    E = RidgeExpectation(phi, cholesky_gram(phi, 0.5, w), w)
+    y1, y2 = rng.normal(size=n), rng.exponential(size=n)
+    a, b = E.apply_pair(y1, y2)
+    for got, y in ((a, y1), (b, y2)):
+        ref = E.factor.regress(y)
+        np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
