@@ -33,7 +33,7 @@ def test_buffer_reuses_its_memory_for_smaller_shapes_and_grows_for_larger():
     release()
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.integers(0, 10_000), st.integers(1, 40), st.sampled_from([1, 3, 8]),
        st.booleans())
 def test_one_vector_regression_equals_the_factor_solve(seed, n, d, signed):
@@ -43,7 +43,7 @@ def test_one_vector_regression_equals_the_factor_solve(seed, n, d, signed):
     np.testing.assert_allclose(E(y), ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.integers(0, 10_000), st.sampled_from([40, 200, 777]), st.sampled_from([2, 7]),
        st.booleans())
 def test_block_slope_bounds_hold_on_every_segment(seed, n, d, ties):
@@ -60,7 +60,7 @@ def test_block_slope_bounds_hold_on_every_segment(seed, n, d, ties):
     assert np.all(cum.b <= scan.b_hi[:, blk] + slack)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=30, deadline=None)
 @given(st.lists(st.floats(-3, 3), min_size=6, max_size=6), st.floats(-2, 2),
        st.floats(0.05, 1.5))
 def test_hermite_argmax_is_the_maximizer_of_a_quintic(coef, t0, h):
@@ -109,7 +109,7 @@ def test_kl_without_expm1_matches_the_expm1_form(lam):
     np.testing.assert_allclose(got[ok], np.minimum(ref, 10.0)[ok], rtol=0, atol=1e-13)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.integers(0, 10_000), st.sampled_from([5, 1024, 2500]), st.sampled_from([1, 4]),
        st.booleans())
 def test_apply_pair_equals_two_regressions(seed, n, d, weighted):
