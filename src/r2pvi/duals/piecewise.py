@@ -152,24 +152,38 @@ class BlockScan:
         s0, s1, s2 = sb.s0, sb.s1, sb.s2
         self._p0, self._p1 = (np.cumsum(s, axis=1) - s for s in (s0, s1))
         self._p2 = np.cumsum(s2, axis=1) - s2 if second_moment else None
-        self._total = s0.sum(axis=1, keepdims=True)
-        tail = self._total - self._p0  # weight of the points at or after each block start
+        self._total = self._p0[:, -1:] + s0[:, -1:]
+        self._tail = self._total - self._p0  # weight of the points at or after a block start
+        self._s0, self._sabs = s0, sb.sabs
         self._al3 = sb.alphas.reshape(-1, BLOCK)
         self.start = self._al3[:, 0]
         self.end = np.append(self.start[1:], sb.alphas[-1])
         self.top = float(sb.alphas[-1])
-        self.e1_start = self._p1 + tail * self.start
-        self.e1_top = s1.sum(axis=1)
+        self.e1_start = self._p1 + self._tail * self.start
+        self.e1_top = self._p1[:, -1] + s1[:, -1]
         if second_moment:
-            self.e2_start = self._p2 + tail * self.start**2
-            self.e2_top = s2.sum(axis=1)
-        self.slope = np.abs(tail - s0) + sb.sabs
-        # dE1/dalpha inside a block is the weight of the points above alpha: the weight after
-        # the block plus a part of the block's, which lies between the sums of the block's
-        # negative and positive weights, (s0 -+ sum |M|) / 2.
-        self.b_lo = tail - 0.5 * (s0 + sb.sabs)
-        self.b_hi = tail - 0.5 * (s0 - sb.sabs)
+            self.e2_start = self._p2 + self._tail * self.start**2
+            self.e2_top = self._p2[:, -1] + s2[:, -1]
         self._pairs = sb.pairs
+
+    @property
+    def slope(self):
+        """A bound on ``|dE1/dalpha|`` inside each block (the weight after the block plus the
+        block's sum of ``|M|``)."""
+        return np.abs(self._tail - self._s0) + self._sabs
+
+    # dE1/dalpha inside a block is the weight of the points above alpha: the weight after the
+    # block plus a part of the block's, which lies between the sums of the block's negative and
+    # positive weights, (s0 -+ sum |M|) / 2.
+    @property
+    def b_lo(self):
+        """A lower bound on ``dE1/dalpha`` inside each block."""
+        return self._tail - 0.5 * (self._s0 + self._sabs)
+
+    @property
+    def b_hi(self):
+        """An upper bound on ``dE1/dalpha`` inside each block."""
+        return self._tail - 0.5 * (self._s0 - self._sabs)
 
     def report(self, totals: dict | None) -> None:
         """Put ``E_i(1)`` (``"mass"``) and ``E_i(v)`` (``"mean"``) into ``totals`` (if a dict)."""
@@ -213,10 +227,11 @@ def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=No
     span1 = scan.end - scan.start
     start2, end2 = scan.start**2, scan.end**2
     straddle = (scan.start < 0) & (scan.end > 0)
-    e1_lo = scan.e1_start + np.minimum(scan.b_lo, 0.0) * span1
-    e1_hi = scan.e1_start + np.maximum(scan.b_hi, 0.0) * span1
+    b_lo, b_hi = scan.b_lo, scan.b_hi
+    e1_lo = scan.e1_start + np.minimum(b_lo, 0.0) * span1
+    e1_hi = scan.e1_start + np.maximum(b_hi, 0.0) * span1
     delta2 = end2 - start2
-    e2_lo = scan.e2_start + np.minimum(np.minimum(scan.b_lo * delta2, scan.b_hi * delta2), 0.0)
+    e2_lo = scan.e2_start + np.minimum(np.minimum(b_lo * delta2, b_hi * delta2), 0.0)
     if straddle.any():
         span2 = np.maximum(start2, end2)[straddle]
         e2_lo[:, straddle] = scan.e2_start[:, straddle] - scan.slope[:, straddle] * span2
