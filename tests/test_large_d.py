@@ -102,9 +102,13 @@ def test_primal_and_dual_factors_agree_with_the_dense_inverse(n, d, seed, log_ga
             np.testing.assert_allclose(f.matrix(), m_true, atol=tol)
             np.testing.assert_allclose(f.inverse_diagonal(), np.diag(inv), rtol=1e-9,
                                        atol=1e-12 / gamma)
-            norms = engine.elliptical_norms(x, f.elliptical_factor())
-            np.testing.assert_allclose(norms**2, ell_true, rtol=1e-9,
-                                       atol=1e-12 * (x * x).sum() / gamma)
+            for xs in (x, sp.csr_matrix(x)):
+                norms = engine.elliptical_norms(xs, f.elliptical_factor())
+                np.testing.assert_allclose(norms**2, ell_true, rtol=1e-9,
+                                           atol=1e-12 * (x * x).sum() / gamma)
+            b = rng.standard_normal((d, 2))
+            np.testing.assert_allclose(f.solve(b), inv @ b, rtol=1e-9,
+                                       atol=1e-9 * np.abs(inv @ b).max())
 
 
 def test_form_is_chosen_from_the_shapes():
@@ -115,6 +119,39 @@ def test_form_is_chosen_from_the_shapes():
     assert GramFactor(np.ones((8, 3)), 1.0).form == "primal"
     with pytest.raises(ValueError, match="form must be one of"):
         GramFactor(np.ones((3, 3)), 1.0, form="kernel")
+
+
+def test_sparse_rows_factor_the_used_features_only():
+    """Tile-coding-like rows (d = 2000, a few non-zeros per row from a few used features):
+    "auto" takes the primal form on the used features (a |U| x |U| factor) when |U| <= n;
+    every quantity equals the dual form's, also restricted to the used features plus
+    representatives of the unused ones (the engine's path)."""
+    rng = np.random.default_rng(21)
+    n, d = 40, 2000
+    pool = rng.choice(d, size=25, replace=False)
+    cols = pool[rng.integers(0, 25, size=(n, 3))]
+    rows = sp.csr_matrix((rng.uniform(0.1, 1.0, 3 * n), (np.repeat(np.arange(n), 3),
+                                                           cols.ravel())), shape=(n, d))
+    w = rng.uniform(0.5, 2.0, n)
+    used = np.unique(cols)
+    primal, dual = GramFactor(rows, 0.7, w), GramFactor(rows, 0.7, w, form="dual")
+    assert primal.form == "primal" and primal.chol.shape == (used.size, used.size)
+    assert GramFactor(rows[:5], 0.7).form == "dual"  # 5 rows use more than 5 features
+    reps = np.setdiff1d(np.arange(d), used)[:2]
+    y, b = rng.standard_normal((n, 2)), rng.standard_normal(d)
+    x = rng.standard_normal((4, d)) * (rng.random((4, d)) < 0.05)
+    x[:, used[:3]] = 1.0
+    x = sp.csr_matrix(x)
+    keep = np.r_[used, reps]
+    for f, g in ((primal, dual), (primal.restrict(keep), dual.restrict(keep))):
+        np.testing.assert_allclose(f.regress(y), g.regress(y), atol=1e-12)
+        np.testing.assert_allclose(f.matrix(), g.matrix(), atol=1e-12)
+        np.testing.assert_allclose(f.inverse_diagonal(), g.inverse_diagonal(), atol=1e-12)
+    np.testing.assert_allclose(primal.solve(b), dual.solve(b), atol=1e-12)
+    np.testing.assert_allclose(engine.elliptical_norms(x, primal.elliptical_factor()),
+                               engine.elliptical_norms(x, dual.elliptical_factor()), atol=1e-12)
+    with pytest.raises(ValueError, match="every used feature"):
+        primal.restrict(used[1:])
 
 
 def test_sparse_column_quadratic():
@@ -260,17 +297,20 @@ def test_elliptical_factors_save_load_and_old_format(tmp_path):
     old = load(save_npz(tmp_path / "v1.npz", "estimator", 1, arrays, meta))
     np.testing.assert_allclose(old.q_values(feat, 1), est.q_values(feat, 1), atol=1e-12)
     # Sparse rows (version 3): R = C^-1 Psi saved as its two factors, Psi in CSR pieces.
+    # Sparse rows (version 3): R = C^-1 Psi saved as its two factors, Psi in CSR pieces
+    # (dual form, d > K); L_U^-1 on the used features U (primal form, |U| <= K).
     rng2 = np.random.default_rng(10)
-    _, sparse = _both(*_data(rng2, 10, 2, 30))
-    feat = _sparse_simplex(rng2, (4, 2, 30))
-    for th in (False, True):
-        est = PEVI(beta=0.3, time_homogeneous=th).fit(sparse)
-        path = est.save(tmp_path / f"s{th}")
-        with np.load(path, allow_pickle=False) as npz:
-            assert "elliptical_r" not in npz.files and "elliptical_cinv" in npz.files
-        back = load(path)
-        for h in range(2):
-            np.testing.assert_array_equal(back.q_values(feat, h), est.q_values(feat, h))
+    for K, d, stored in ((10, 30, "elliptical_cinv"), (30, 8, "elliptical_linv_data")):
+        _, sparse = _both(*_data(rng2, K, 2, d))
+        feat = _sparse_simplex(rng2, (4, 2, d))
+        for th in (False, True):
+            est = PEVI(beta=0.3, time_homogeneous=th).fit(sparse)
+            path = est.save(tmp_path / f"s{th}{d}")
+            with np.load(path, allow_pickle=False) as npz:
+                assert "elliptical_r" not in npz.files and stored in npz.files
+            back = load(path)
+            for h in range(2):
+                np.testing.assert_array_equal(back.q_values(feat, h), est.q_values(feat, h))
 
 
 def test_tampered_sparse_elliptical_factors_are_named(tmp_path):
@@ -285,6 +325,22 @@ def test_tampered_sparse_elliptical_factors_are_named(tmp_path):
         ("elliptical_psi_indptr", lambda a, m: a.update(elliptical_psi_indptr=ptr.astype(float))),
         ("elliptical_cinv", lambda a, m: a.update(elliptical_cinv=np.ones((2, 3, 4)))),
         ("elliptical_storage", lambda a, m: m.update(elliptical_storage="csc"))))
+    rng = np.random.default_rng(18)
+    phi, rewards, next_phi = _data(rng, 30, 2, 8)
+    phi[..., 3] = next_phi[..., 3] = 0.0  # an unused feature (rows renormalized)
+    phi[..., 0] += 1e-3
+    next_phi[..., 0] += 1e-3
+    phi /= phi.sum(axis=-1, keepdims=True)
+    next_phi /= next_phi.sum(axis=-1, keepdims=True)
+    _, sparse = _both(phi, rewards, next_phi)
+    good = PEVI(beta=0.3).fit(sparse).save(tmp_path / "used")
+    with np.load(good, allow_pickle=False) as npz:
+        cols, sizes = npz["elliptical_cols"], npz["elliptical_sizes"]
+    _assert_tampering_is_named(good, tmp_path, (
+        ("elliptical_cols", lambda a, m: a.update(elliptical_cols=cols[::-1].copy())),
+        ("elliptical_sizes", lambda a, m: a.update(elliptical_sizes=sizes + 1)),
+        ("elliptical_linv_data", lambda a, m: a.update(elliptical_linv_data=np.ones(3))),
+        ("elliptical_c", lambda a, m: a.update(elliptical_c=-a["elliptical_c"]))))
 
 
 def _assert_tampering_is_named(good, tmp_path, changes):

@@ -333,7 +333,7 @@ def _apply_rule(rule: StepRule, E: RidgeExpectation, factor: GramFactor, v, ctx:
     features only."""
     active = factor.active_features()
     d = E.n_dims
-    if active is None or factor.form != "dual" or active.size > 0.75 * d:
+    if active is None or active.size > 0.75 * d:
         return rule(E, v, ctx)
     unused = np.setdiff1d(np.arange(d), active, assume_unique=True)
     params = rule.factor_params(ctx.h)

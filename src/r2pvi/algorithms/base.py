@@ -18,7 +18,7 @@ from .._io import file_array, file_error, load_npz, save_npz
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
-from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct
+from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
@@ -29,7 +29,10 @@ __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
 # Version 3: elliptical factors of sparse-feature fits, ``R = C^{-1} Psi`` kept as its two
 # factors: ``elliptical_cinv`` (G, n, n) and ``Psi`` in CSR pieces (``elliptical_psi_data``,
 # ``elliptical_psi_indices``, ``elliptical_psi_indptr`` (G, n + 1)), header
-# ``elliptical_storage = "sparse"``. Dense fits still write version-2 content.
+# ``elliptical_storage = "sparse"``; or, for the primal form on the used features of sparse
+# rows, ``L_U^{-1}`` and ``U`` ragged by factor (``elliptical_linv_data``, ``elliptical_cols``,
+# ``elliptical_sizes`` (G,)), header ``elliptical_storage = "used"``. Dense fits still write
+# version-2 content.
 MODEL_FORMAT_VERSION = 3
 ESTIMATOR_REGISTRY: dict[str, type] = {}
 
@@ -265,7 +268,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             index, packed, storage = _pack_elliptical(self._elliptical)
             arrays.update(packed)
             meta["elliptical_index"] = index
-            if storage == "sparse":
+            if storage != "dense":
                 meta["elliptical_storage"] = storage
         return save_npz(path, "estimator", MODEL_FORMAT_VERSION, arrays, meta)
 
@@ -409,9 +412,11 @@ def _load_elliptical(path, arrays, header, H: int, d: int, needed: bool):
     storage = header.get("elliptical_storage", "dense")
     if storage == "sparse":
         return _load_sparse_elliptical(path, arrays, header, H, d)
+    if storage == "used":
+        return _load_used_elliptical(path, arrays, header, H, d)
     if storage != "dense":
-        raise file_error(path, "elliptical_storage", f"must be 'dense' or 'sparse', got "
-                         f"{storage!r}")
+        raise file_error(path, "elliptical_storage", f"must be 'dense', 'sparse' or 'used', "
+                         f"got {storage!r}")
     rs = file_array(path, arrays, "elliptical_r", ndim=3)
     if rs.shape[0] < 1 or rs.shape[2] != d:
         raise file_error(path, "elliptical_r", f"must have shape (G >= 1, r, d = {d}), "
@@ -459,13 +464,36 @@ def _load_sparse_elliptical(path, arrays, header, H: int, d: int):
     return [(factors[g], float(cs[g, 0]), float(cs[g, 1])) for g in index]
 
 
-def _int_array(path, arrays: dict, name: str, shape: tuple) -> np.ndarray:
+def _load_used_elliptical(path, arrays, header, H: int, d: int):
+    """Version 3's used-feature factors ``L_U^{-1}`` (ragged by factor) and their features."""
+    sizes = _int_array(path, arrays, "elliptical_sizes", None)
+    if sizes.ndim != 1 or sizes.size < 1 or np.any(sizes < 1) or np.any(sizes > d):
+        raise file_error(path, "elliptical_sizes", f"must be G >= 1 sizes in [1, d = {d}]")
+    cols = _int_array(path, arrays, "elliptical_cols", (int(sizes.sum()),))
+    linv = file_array(path, arrays, "elliptical_linv_data", shape=(int((sizes**2).sum()),))
+    G = sizes.size
+    cs, index = _elliptical_constants(path, arrays, header, H, G)
+    if np.any(cs[:, 0] <= 0):
+        raise file_error(path, "elliptical_c", "must hold 1 / gamma > 0 in its first column")
+    ends, sq_ends = np.cumsum(sizes), np.cumsum(sizes**2)
+    factors = []
+    for g in range(G):
+        u = int(sizes[g])
+        c = cols[ends[g] - u:ends[g]]
+        if np.any(c < 0) or np.any(c >= d) or np.any(np.diff(c) <= 0):
+            raise file_error(path, "elliptical_cols", f"must be increasing features in [0, {d})")
+        lg = linv[sq_ends[g] - u * u:sq_ends[g]].reshape(u, u)
+        factors.append(_UsedFeaturesFactor(lg, c, 1.0 / float(cs[g, 0])))
+    return [(factors[g], 0.0, 1.0) for g in index]
+
+
+def _int_array(path, arrays: dict, name: str, shape: tuple | None) -> np.ndarray:
     if name not in arrays:
         raise file_error(path, name, "is missing")
     arr = arrays[name]
     if arr.dtype.kind not in "iu":
         raise file_error(path, name, f"must be integers, got dtype {arr.dtype}")
-    if arr.shape != shape:
+    if shape is not None and arr.shape != shape:
         raise file_error(path, name, f"must have shape {shape}, got {arr.shape}")
     return arr.astype(np.int64)
 
@@ -487,6 +515,13 @@ def _pack_elliptical(factors: list) -> tuple[list[int], dict, str]:
     if all(isinstance(r, np.ndarray) for r in rs):
         arrays["elliptical_r"] = np.stack(rs)
         return index, arrays, "dense"
+    if all(isinstance(r, _UsedFeaturesFactor) for r in rs):
+        # c0 = 0, c1 = 1 for these; the first constant column carries 1 / gamma instead.
+        arrays["elliptical_c"] = np.array([[1.0 / r.gamma, 1.0] for r in rs])
+        arrays["elliptical_sizes"] = np.array([r.cols.size for r in rs], dtype=np.int64)
+        arrays["elliptical_cols"] = np.concatenate([r.cols for r in rs]).astype(np.int64)
+        arrays["elliptical_linv_data"] = np.concatenate([r.linv.ravel() for r in rs])
+        return index, arrays, "used"
     if not all(isinstance(r, _SparseProduct) for r in rs) or len(
             {r.cinv.shape for r in rs}) != 1:
         raise TypeError("cannot save elliptical factors that mix dense and sparse forms or "
