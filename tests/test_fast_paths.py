@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from r2pvi.duals import RidgeExpectation, cholesky_gram, kl_regularized
+from r2pvi.duals import RidgeExpectation, cholesky_gram, kl_constrained, kl_regularized
 from r2pvi.duals._scratch import buffer, release
 from r2pvi.duals.constrained import _hermite_argmax
 from r2pvi.duals.operators import BLOCK
@@ -124,3 +124,37 @@ def test_apply_pair_equals_two_regressions(seed, n, d, weighted):
     for got, y in ((a, y1), (b, y2)):
         ref = E.factor.regress(y)
         np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
+
+
+def _ma_objective(E, v, b, rho, v_max):
+    """Ma et al.'s clipped ridge objective (as in test_constrained), at one b for all factors."""
+    est = E(np.expm1(-v / b))
+    with np.errstate(divide="ignore"):
+        log_u = np.log(1.0 + np.clip(est, -1.0, 0.0))
+    m = np.minimum(E(v), v_max)
+    return -b * np.maximum(log_u, -m / b) - b * rho
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_kl_ball_local_grid_stays_above_b_min(seed):
+    """``b_min`` between the two smallest maximizers (log b 0.06 apart on these seeds): the
+    local grid around the other factors' estimates reaches below ``b_min``, where the first
+    factor's objective is larger; it must not be evaluated there. The result is the maximum
+    over ``b >= b_min``."""
+    E, rng = ridge(seed, 400, 4, signed=False)
+    v = rng.uniform(0.0, 3.0, size=400)
+    rho = 0.2
+    ts = np.linspace(np.log(1e-3), np.log(1e2), 3000)
+    dense = np.array([_ma_objective(E, v, np.exp(t), rho, 3.0) for t in ts])
+    t_star = np.sort(ts[dense.argmax(axis=0)])
+    assert t_star[1] - t_star[0] < 0.1  # the setting this test needs
+    b_min = float(np.exp(0.5 * (t_star[0] + t_star[1])))
+    got = kl_constrained(E, v, rho, v_max=3.0, centered=True, b_min=b_min)
+    allowed = np.linspace(np.log(b_min), np.log(1e2), 3000)
+    grid = np.array([_ma_objective(E, v, np.exp(t), rho, 3.0) for t in allowed])
+    best = grid.max(axis=0)
+    for i, k in enumerate(grid.argmax(axis=0)):  # a finer local grid around each best cell
+        local = np.linspace(allowed[max(k - 1, 0)], allowed[min(k + 1, allowed.size - 1)], 801)
+        best[i] = max(best[i], max(_ma_objective(E, v, np.exp(t), rho, 3.0)[i] for t in local))
+    assert np.all(got <= best + 1e-11)
+    np.testing.assert_allclose(got, best, atol=1e-6)

@@ -217,12 +217,15 @@ def kl_constrained(
 
     The 1-D problem is solved in ``t = log b`` for all factors at once: the objective, its
     first and second derivatives on a log-spaced grid of ``b`` (one operator call for all
-    factors) give each factor a bracket around its best grid point, refined by a safeguarded
-    Newton iteration (bisection when a step leaves the bracket); the best value seen is
-    returned. Everything is computed in the log domain, shifted by the smallest value each
-    factor can see, with ``expm1`` for large ``b``: finite and accurate for values from 0 to
-    1e6 and beyond and ``b`` from 1e-9 (relative to the values) to ``2 (max V - min V) /
-    rho``. The grid is scaled by the values, never by a bound such as ``H r_max``.
+    factors) give each factor a bracket around its best grid point and, as a first guess,
+    the maximizer of the quintic through the bracket's ends, sharpened by a few more shared
+    evaluations around the guesses; a safeguarded Newton iteration (bisection when a step
+    leaves the bracket) refines it until its predicted gain is below 1e-14 of the values; the
+    best value seen is returned. Everything is computed in the log domain, shifted by the
+    smallest value each factor can see, with ``expm1`` for large ``b``: finite and accurate
+    for values from 0 to 1e6 and beyond and ``b`` from 1e-9 (relative to the values) to
+    ``2 (max V - min V) / rho``. The grid is scaled by the values, never by a bound such as
+    ``H r_max``.
 
     Guarantees: with ``v_range = (lo, hi)`` (unbounded when None) and ``m_i = clip(E_i(v),
     lo, hi)``, the result lies in ``[min(lower_i, m_i), m_i]``, ``lower_i = lo`` for a
@@ -363,7 +366,7 @@ class _KLProblem:
         # derivatives, known from the grid), a far better start than Newton from one end.
         first = _hermite_argmax(lo, hi, g[r, k_lo], dg[r, k_lo], d2g[r, k_lo], g[r, k_hi],
                                 dg[r, k_hi], d2g[r, k_hi])
-        first = self._refine_locally(first, lo, hi, best)
+        first = self._refine_locally(first, lo, hi, best, tgrid[0], tgrid[-1])
         ftol = _FTOL * self.scale
         for it in range(max_iter):
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -387,21 +390,24 @@ class _KLProblem:
             np.maximum(best, np.minimum(self.shift, self.cap), out=best)  # b -> 0
         return best
 
-    def _refine_locally(self, first, lo, hi, best):
+    def _refine_locally(self, first, lo, hi, best, t_min, t_max):
         """Sharper starting points from a second, local grid shared by all factors.
 
         The quintic estimates ``first`` of the factors' maximizers (log b) usually cluster;
         a few shared evaluations spaced ``_LOCAL_STEP`` apart around them (n exponentials
         each, against n per factor and Newton step) give each factor a quintic on an interval
         ~8x narrower, whose maximizer is typically accurate enough that one Newton
-        evaluation confirms it. Skipped when the estimates spread too far. ``best`` takes
-        the local evaluations too (exact values of the objective).
+        evaluation confirms it. Skipped when the estimates spread too far. The nodes stay in
+        the searched range ``[t_min, t_max]`` (``b >= b_min``); ``best`` takes the local
+        evaluations too (exact values of the objective).
         """
         valid = np.isfinite(first)
         if not valid.any():
             return first
-        t_lo = float(first[valid].min()) - 0.5 * _LOCAL_STEP
-        t_hi = float(first[valid].max()) + 0.5 * _LOCAL_STEP
+        t_lo = max(float(first[valid].min()) - 0.5 * _LOCAL_STEP, float(t_min))
+        t_hi = min(float(first[valid].max()) + 0.5 * _LOCAL_STEP, float(t_max))
+        if not t_hi > t_lo:
+            return first
         count = int(np.ceil((t_hi - t_lo) / _LOCAL_STEP)) + 1
         if count > _LOCAL_MAX:
             return first
