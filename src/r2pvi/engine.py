@@ -169,7 +169,6 @@ def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonn
     """
     flat, lead = _rows(phi)  # one GEMM, not a batch of small products
     if kind == "l1" and beta != 0.0:
-        # One pass over the features for the linear part and the penalty together.
         scale = -beta * np.sqrt(inv_diag)
         if nonneg:  # |phi| = phi: one matrix-vector product (an n x 2 GEMM costs ~3x one)
             q = np.asarray(flat @ (weights_h + scale))
@@ -301,14 +300,15 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         self._pending.append(y)
 
     # ------------------------------------------------------------------ the operator
-    def apply_each(self, ys) -> list:
-        """``[E(y) for y in ys]`` in one read of the step's features."""
-        ys = list(ys)
-        for y in ys:
+    def apply_pair(self, y1: np.ndarray, y2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(E(y1), E(y2))`` in one read of the step's features (KL's two regressions)."""
+        if self._rows is not None:
+            return super().apply_pair(y1, y2)
+        for y in (y1, y2):
             if not any(y is p for p in self._pending) and not any(
                     y is done for done, _ in self._done):
                 self.include(y)
-        return [self(y) for y in ys]
+        return self(y1), self(y2)
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
         if any(p is y for p in self._pending):
