@@ -317,7 +317,7 @@ class ChunkedRidgeExpectation(RidgeExpectation):
             if done is y:
                 return value.copy()
         if self._rows is not None:
-            return self.factor.regress(np.asarray(y, dtype=float))
+            return super().__call__(y)
         return self._pass(y)
 
     def _pass(self, y):
@@ -333,29 +333,40 @@ class ChunkedRidgeExpectation(RidgeExpectation):
             return None
         cols = [np.asarray(c, dtype=float) for c in cols]
         if self._rows is not None:  # the rows are in memory: no read
-            out = [self.factor.regress(c) for c in cols]
+            out = [RidgeExpectation.__call__(self, c) for c in cols]
             self._done.extend(zip(self._pending, out[len(out) - len(self._pending):],
                                   strict=True))
             self._pending = []
             return out[0] if y is not None else None
-        flat = [c.reshape(self.n_points, -1) for c in cols]
+        # The products as the in-memory operator forms them (the same bits for one chunk):
+        # y^T Phi for one unweighted vector, Phi^T (w y) otherwise.
         gram = np.zeros((d, d)) if self._factor is None else None
-        acc = [np.zeros((d, c.shape[1])) for c in flat]
+        acc = [np.zeros((d,) + c.shape[1:]) for c in cols]
         w = self.weights
         for s, e, rows in self.source.phi_chunks(self.h):
-            xw = rows if w is None else rows * w[s:e, None]
             if gram is not None:
+                xw = rows if w is None else rows * w[s:e, None]
                 gram += xw.T @ rows  # a symmetric rank-k update when unweighted
-            for a, c in zip(acc, flat, strict=True):
-                a += xw.T @ c[s:e]
+            for a, c in zip(acc, cols, strict=True):
+                if w is None and c.ndim == 1:
+                    a += c[s:e] @ rows
+                elif w is None:
+                    a += rows.T @ c[s:e]
+                else:
+                    a += rows.T @ (c[s:e].T * w[s:e]).T
         self.passes += 1
         if gram is not None:
             if w is None:
                 self.source.remember_gram(self.h, gram)
             self._factor = _primal_factor(gram, self.gamma, self.weights,
                                           (self.n_points, d))
-        solve = self._factor.solve  # Lambda^{-1} b, as the in-memory factor does it
-        out = [solve(a).reshape((d,) + c.shape[1:]) for a, c in zip(acc, cols, strict=True)]
+        out = []
+        for a, c in zip(acc, cols, strict=True):
+            if w is None and c.ndim == 1:  # Lambda^{-1} = L^{-T} L^{-1}, as in memory
+                linv = self._factor.linv
+                out.append(linv.T @ (linv @ a))
+            else:
+                out.append(self._factor.solve(a))
         registered = self._pending
         self._done.extend(zip(registered, out[len(out) - len(registered):], strict=True))
         self._pending = []
