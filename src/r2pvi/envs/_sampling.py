@@ -55,14 +55,14 @@ def sample_rows(table: np.ndarray, rows: np.ndarray, rng: np.random.Generator) -
     True
     """
     cdf = np.cumsum(table, axis=1)
-    u = rng.random(rows.shape[0]) * cdf[rows, -1]
     m = cdf.shape[1]
+    columns = np.ascontiguousarray(cdf.T)  # columns[j]: P(category <= j) of every row
+    u = rng.random(rows.shape[0]) * columns[m - 1].take(rows)
     if m > 16:
         return (cdf[rows] <= u[:, None]).sum(axis=1)
-    out = np.zeros(rows.shape[0], dtype=np.int64)
-    for j in range(m - 1):  # cdf[:, m-1] <= u only on round-off: count it too
-        out += cdf[:, j][rows] <= u
-    out += cdf[:, m - 1][rows] <= u
+    out = (columns[0].take(rows) <= u).astype(np.int64)
+    for j in range(1, m):  # the last column counts only on round-off, as in the row sum
+        out += columns[j].take(rows) <= u
     return out
 
 

@@ -307,11 +307,12 @@ class FiniteLinearMDP:
         next_steps = np.minimum(steps + 1, H - 1)  # the row of h = H-1 is never used
         # Gathered step-major, (H, K, d), and handed over as a (K, H, d) view: the dataset
         # stores it without another copy.
+        pair = states.T * A + actions.T  # (H, K) rows of the (S * A, d) feature table
         if self._phi.ndim == 4:
-            phi = self._phi[steps[:, None], states.T, actions.T]
+            phi = self._phi.reshape(H, S * A, -1)[steps[:, None], pair]
             table = self._phi[next_steps]  # table[h]: the features of step h's next states
         else:
-            phi = self._phi[states.T, actions.T]
+            phi = self._phi.reshape(S * A, -1).take(pair, axis=0)
             table = self._phi
         phi = phi.swapaxes(0, 1)
         # Next states are indices into the (S, A, d) feature table: nothing per sample is
