@@ -108,15 +108,25 @@ class AmericanPutOption:
         return self._hat(s, np.empty((s.size, self.d)))
 
     def _hat(self, s: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """``max{0, 1 - |s - s_i| / Delta}`` written into ``out (n, d)`` (in place: the same
-        operations as the formula, without temporaries); rows of NaN prices are zero."""
-        np.subtract(s[:, None], self.anchors, out=out)
-        np.abs(out, out=out)
-        np.divide(out, self.spacing, out=out)
-        np.subtract(1.0, out, out=out)
+        """``max{0, 1 - |s - s_i| / Delta}`` written into ``out (n, d)``; rows of NaN prices
+        are zero.
+
+        Only the anchors ``i = j - 1, ..., j + 2`` around ``j = floor((s - s_1) / Delta)`` are
+        computed (with the formula's operations, so the values are the same bits): every
+        other anchor is at least ``Delta`` (plus round-off margins) from ``s``, where the hat
+        is 0.
+        """
+        out[...] = 0.0
         with np.errstate(invalid="ignore"):
-            np.maximum(0.0, out, out=out)
-        out[np.isnan(s)] = 0.0
+            base = np.floor((s - self.first_anchor) / self.spacing)
+        finite = np.isfinite(base)
+        base[~finite] = -self.d - 4  # out of range for every candidate below
+        for shift in (-1.0, 0.0, 1.0, 2.0):
+            j = base + shift
+            rows = np.flatnonzero((j >= 0) & (j < self.d))
+            cols = j[rows].astype(np.intp)
+            value = 1.0 - np.abs(s[rows] - self.anchors[cols]) / self.spacing
+            out[rows, cols] = np.maximum(0.0, value)
         return out
 
     def phi_all(self, prices) -> np.ndarray:
@@ -220,8 +230,8 @@ class AmericanPutOption:
         ended state (NaN price) has the known value 0 for both actions: it holds.
         """
         q_hold = est.q_values(self.features(prices)[:, None, :], h)[:, 0]
-        exercise = self.payoff(prices) > q_hold
-        exercise[np.isnan(prices)] = False
+        with np.errstate(invalid="ignore"):  # NaN prices compare False: they hold
+            exercise = np.maximum(0.0, self.strike - prices) > q_hold
         return exercise.astype(np.int64)
 
     def _check_estimator(self, est) -> None:
