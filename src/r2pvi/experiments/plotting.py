@@ -218,7 +218,7 @@ def save_figure(fig, out_dir, name: str) -> dict[str, Path]:
             engine.execute(fig)
         finally:
             fig.set_dpi(dpi)
-        fig.set_layout_engine("none")
+        fig.set_layout_engine(None)  # None, not "none": savefig would draw twice
     fig.savefig(paths["png"], dpi=_PNG_DPI)
     fig.savefig(paths["pdf"])
     plt.close(fig)
