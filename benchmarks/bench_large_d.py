@@ -9,13 +9,19 @@ state-feedback controller, reward 1 while the pole is up; episodes are not cut a
   theta_dot), crossed with the 2 actions block-wise: d = 1152.
 - ``tiles``: tile coding, 8 tilings of 6^4 tiles each, averaged over the tilings (8 non-zeros
   of 1/8 per row), crossed with the actions: d = 20,736, stored as ``scipy.sparse`` rows.
+- ``solvers``: one tile-coding step at K = 300, 1000, 3000, solved every exact way (the
+  choice of factorization for sparse rows, see :func:`solvers_case`).
 - ``act``: per-state acting time at d = 450 (RBF 3 x 3 x 5 x 5 x 2 actions), PEVI
   (elliptical penalty) against R2PVI-TV (l1 penalty).
 
-The floor is the issue's: for one step, one K x d Gram matrix + Cholesky + solve in the
-primal (d x d) and in the dual (K x K) form; ``floor = H * min(primal, dual)``, timed in the
-same run. Every case runs in its own subprocess (peak RSS is the child's ``ru_maxrss``), with
-one BLAS thread by default (the machine is shared).
+The floor is the issue's: for one step, one K x d Gram matrix + Cholesky + solve in the primal
+(d x d) and in the dual (K x K) form; ``floor = H * min(primal, dual)``, timed in the same run.
+The pooled-step fit has its own floor (:func:`pooled_floor`): one Gram matrix of the H K rows,
+then at every step one pass over the H K A next-state features and one over the H K rows —
+memory-bound, H times the data read per step. Every case runs in its own subprocess (peak RSS
+is the child's ``ru_maxrss``), with one BLAS thread by default. Times are the process's CPU
+seconds (``time.process_time``): with one thread they are the work done, whatever else runs on
+the machine (on a quiet machine they equal wall time; ``--wall`` reports wall time instead).
 
     python benchmarks/bench_large_d.py                   # every case
     python benchmarks/bench_large_d.py --cases rbf300 tiles300 act
@@ -148,8 +154,9 @@ def sparse_dataset(K, seed=0):
 def step_floor(phi, rewards, gamma=1.0, repeats=3):
     """(primal, dual) seconds of one Gram matrix + Cholesky + solve for a K x d step.
 
-    Sparse rows: the dual's Gram matrix is a sparse product (then a dense K x K Cholesky);
-    the primal (a dense d x d factorization) is not timed above d = 4096.
+    Sparse rows: the dual's Gram matrix is a sparse product (then a dense K x K Cholesky),
+    the primal's a dense |U| x |U| matrix on the used features (:func:`sparse_step_floor`).
+    Dense rows: the primal (a dense d x d factorization) is not timed above d = 4096.
     """
     if sp.issparse(phi):
         return sparse_step_floor(phi, rewards, gamma, repeats)
@@ -174,32 +181,62 @@ def step_floor(phi, rewards, gamma=1.0, repeats=3):
             continue
         best = np.inf
         for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            best = min(best, time.perf_counter() - t0)
+            best = min(best, timed(fn))
         out.append(best)
     return out
 
 
 def sparse_step_floor(phi, rewards, gamma, repeats):
+    """(primal on the used features, dual) for sparse rows: no row has an entry off the used
+    features U, so the primal Gram matrix is |U| x |U| (dense) plus gamma I elsewhere."""
+    used = np.unique(phi.indices)
+    sub = phi[:, used]
+
+    def primal():
+        g = (sub.T @ sub).toarray()
+        g[np.diag_indices_from(g)] += gamma
+        c = np.linalg.cholesky(g)
+        np.linalg.solve(c.T, np.linalg.solve(c, sub.T @ rewards))
+
     def dual():
         g = (phi @ phi.T).toarray()
         g[np.diag_indices_from(g)] += gamma
         c = np.linalg.cholesky(g)
         phi.T @ np.linalg.solve(c.T, np.linalg.solve(c, rewards))
 
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        dual()
-        best = min(best, time.perf_counter() - t0)
-    return [np.inf, best]
+    return [min(timed(fn) for _ in range(repeats)) for fn in (primal, dual)]
+
+
+CLOCK = time.process_time
+
+
+def pooled_floor(ds, gamma=1.0):
+    """What any pooled-step (time-homogeneous) fit must do: one Gram matrix of all H K rows
+    with its Cholesky factor, then at every step one pass over the H K A stored next-state
+    features (V_{h+1} at every pooled next state) and one over the H K rows (the regression):
+    ``gram + H * (one matrix-vector product each)``."""
+    from r2pvi.engine import _pooled_steps
+
+    phi, rewards, next_phi, _ = _pooled_steps(ds)
+    flat = next_phi.reshape(-1, next_phi.shape[-1])
+    w = np.full(phi.shape[1], 1.0 / phi.shape[1])
+
+    def gram():
+        g = phi.T @ phi
+        g[np.diag_indices_from(g)] += gamma
+        np.linalg.cholesky(g)
+
+    def step():
+        v = (flat @ w).reshape(next_phi.shape[:-1]).max(axis=1)
+        phi.T @ (rewards + v)
+
+    return timed(gram) + H * min(timed(step) for _ in range(3))
 
 
 def timed(fn):
-    t0 = time.perf_counter()
+    t0 = CLOCK()
     fn()
-    return time.perf_counter() - t0
+    return CLOCK() - t0
 
 
 def fits(ds, names, pooled):
@@ -221,26 +258,90 @@ def fits(ds, names, pooled):
 
 
 def run_case(case):
-    t0 = time.perf_counter()
+    t0 = CLOCK()
     if case.startswith("rbf"):
         K = int(case[3:])
         ds, d = dense_dataset(K, (4, 4, 6, 6))
-        names, pooled = ["TV", "DRPVI", "chi2", "PEVI"], (["TV"] if K <= 300 else [])
+        names, pooled = ["TV", "DRPVI", "chi2", "PEVI"], ["TV"]
     elif case.startswith("tiles"):
         K = int(case[5:])
         ds, d = sparse_dataset(K)
         names, pooled = ["TV", "DRPVI", "chi2", "PEVI"], []
     elif case == "act":
         return act_case()
+    elif case == "solvers":
+        return solvers_case()
     else:
         raise SystemExit(f"unknown case {case!r}")
-    build = time.perf_counter() - t0
+    build = CLOCK() - t0
     phi, rewards, _, _ = ds.step(H // 2)
     primal, dual = step_floor(phi, rewards)
     res = {"case": case, "K": K, "d": d, "build_s": build, "floor_primal_s": H * primal,
            "floor_dual_s": H * dual, "floor_s": H * min(primal, dual)}
+    if pooled:
+        res["pooled floor_s"] = pooled_floor(ds)
     res.update({f"fit {k}": v for k, v in fits(ds, names, pooled).items()})
     res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return res
+
+
+def solvers_case(Ks=(300, 1000, 3000), step=100):
+    """One tile-coding step (d = 20,736) at several K: every way to get what a step needs —
+    the ridge weights AND all of ``diag(Lambda^{-1})`` (the l1 penalty) — exactly:
+
+    - ``used primal``: dense |U| x |U| Cholesky on the used features U (what r2pvi does when
+      |U| <= K), weights and diagonal from ``L_U^{-1}``;
+    - ``dual``: K x K Cholesky of the sparse product ``Psi Psi^T`` (r2pvi when |U| > K);
+    - ``splu``: SciPy's SuperLU on the sparse d x d Gram matrix: weights by one solve, the
+      diagonal by |U| solves (blocks of 512 unit vectors);
+    - ``cg``: conjugate gradients (rtol 1e-12) for the weights only — the diagonal would take
+      |U| more solves, so CG cannot serve the l1 penalty by itself.
+    """
+    fmap, d = tile_map()
+    res = {"case": "solvers", "d": d}
+    for K in Ks:
+        states, actions, rewards = cartpole_episodes(K, 0)
+        phi = sp.csr_matrix(fmap(states[:, step], actions[:, step]))
+        res.update(_solvers_at(phi, rewards[:, step], f"K={K}"))
+    return res
+
+
+def _solvers_at(phi, y, label):
+    import scipy.sparse.linalg as spl
+
+    from r2pvi.duals.operators import GramFactor
+
+    d = phi.shape[1]
+    used = np.unique(phi.indices)
+
+    def factor(form):
+        f = GramFactor(phi, 1.0, form=form)
+        return f.regress(y), f.inverse_diagonal()
+
+    def superlu():
+        lu = spl.splu(sp.csc_matrix(phi.T @ phi + sp.identity(d)))
+        w = lu.solve(phi.T @ y)
+        diag = np.ones(d)
+        for s in range(0, used.size, 512):
+            c = used[s:s + 512]
+            e = np.zeros((d, c.size))
+            e[c, np.arange(c.size)] = 1.0
+            diag[c] = lu.solve(e)[c, np.arange(c.size)]
+        return w, diag
+
+    def cg():
+        op = spl.LinearOperator((d, d), matvec=lambda x: phi.T @ (phi @ x) + x)
+        return spl.cg(op, phi.T @ y, rtol=1e-12, maxiter=10_000)[0]
+
+    w_ref, diag_ref = factor("dual")
+    res = {f"{label} used features": int(used.size)}
+    for name, fn in (("used primal", lambda: factor("primal")), ("dual", lambda: factor("dual")),
+                     ("splu", superlu)):
+        w, diag = fn()
+        assert np.allclose(w, w_ref, atol=1e-9) and np.allclose(diag, diag_ref, atol=1e-9)
+        res[f"{label} {name} ms"] = 1e3 * min(timed(fn) for _ in range(3))
+    assert np.allclose(cg(), w_ref, atol=1e-8)
+    res[f"{label} cg (weights only) ms"] = 1e3 * min(timed(cg) for _ in range(3))
     return res
 
 
@@ -265,19 +366,26 @@ def act_case(n_states=2000):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+",
-                        default=["act", "rbf300", "rbf1000", "tiles300", "tiles1000"])
+                        default=["act", "solvers", "rbf300", "rbf1000", "tiles300",
+                                 "tiles1000"])
     parser.add_argument("--threads", type=int, default=1, help="BLAS threads per case")
+    parser.add_argument("--wall", action="store_true", help="wall time instead of CPU time")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
+        global CLOCK
+        if args.wall:
+            CLOCK = time.perf_counter
         print(json.dumps(run_case(args.child)))
         return
     env = dict(os.environ, OPENBLAS_NUM_THREADS=str(args.threads),
                OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
     print(f"# {time.strftime('%Y-%m-%d %H:%M')} UTC, load {os.getloadavg()[0]:.1f}, "
-          f"{args.threads} BLAS thread(s), H = {H}")
+          f"{args.threads} BLAS thread(s), H = {H}, "
+          f"{'wall' if args.wall else 'CPU'} seconds")
     for case in args.cases:
-        proc = subprocess.run([sys.executable, __file__, "--child", case], env=env,
+        proc = subprocess.run([sys.executable, __file__, "--child", case]
+                              + (["--wall"] if args.wall else []), env=env,
                               capture_output=True, text=True)
         if proc.returncode:
             print(f"{case}: failed\n{proc.stderr[-2000:]}")
@@ -289,7 +397,9 @@ def main():
             if key == "case":
                 continue
             extra = ""
-            if key.startswith("fit") and floor:
+            if key.startswith("fit") and key.endswith("pooled") and res.get("pooled floor_s"):
+                extra = f"   ({value / res['pooled floor_s']:.2f}x pooled floor)"
+            elif key.startswith("fit") and floor:
                 extra = f"   ({value / floor:.2f}x floor)"
             shown = f"{value:.3f}" if isinstance(value, float) else value
             print(f"  {key:28s} {shown}{extra}")

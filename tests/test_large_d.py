@@ -102,9 +102,13 @@ def test_primal_and_dual_factors_agree_with_the_dense_inverse(n, d, seed, log_ga
             np.testing.assert_allclose(f.matrix(), m_true, atol=tol)
             np.testing.assert_allclose(f.inverse_diagonal(), np.diag(inv), rtol=1e-9,
                                        atol=1e-12 / gamma)
-            norms = engine.elliptical_norms(x, f.elliptical_factor())
-            np.testing.assert_allclose(norms**2, ell_true, rtol=1e-9,
-                                       atol=1e-12 * (x * x).sum() / gamma)
+            for xs in (x, sp.csr_matrix(x)):
+                norms = engine.elliptical_norms(xs, f.elliptical_factor())
+                np.testing.assert_allclose(norms**2, ell_true, rtol=1e-9,
+                                           atol=1e-12 * (x * x).sum() / gamma)
+            b = rng.standard_normal((d, 2))
+            np.testing.assert_allclose(f.solve(b), inv @ b, rtol=1e-9,
+                                       atol=1e-9 * np.abs(inv @ b).max())
 
 
 def test_form_is_chosen_from_the_shapes():
@@ -115,6 +119,39 @@ def test_form_is_chosen_from_the_shapes():
     assert GramFactor(np.ones((8, 3)), 1.0).form == "primal"
     with pytest.raises(ValueError, match="form must be one of"):
         GramFactor(np.ones((3, 3)), 1.0, form="kernel")
+
+
+def test_sparse_rows_factor_the_used_features_only():
+    """Tile-coding-like rows (d = 2000, a few non-zeros per row from a few used features):
+    "auto" takes the primal form on the used features (a |U| x |U| factor) when |U| <= n;
+    every quantity equals the dual form's, also restricted to the used features plus
+    representatives of the unused ones (the engine's path)."""
+    rng = np.random.default_rng(21)
+    n, d = 40, 2000
+    pool = rng.choice(d, size=25, replace=False)
+    cols = pool[rng.integers(0, 25, size=(n, 3))]
+    rows = sp.csr_matrix((rng.uniform(0.1, 1.0, 3 * n), (np.repeat(np.arange(n), 3),
+                                                           cols.ravel())), shape=(n, d))
+    w = rng.uniform(0.5, 2.0, n)
+    used = np.unique(cols)
+    primal, dual = GramFactor(rows, 0.7, w), GramFactor(rows, 0.7, w, form="dual")
+    assert primal.form == "primal" and primal.chol.shape == (used.size, used.size)
+    assert GramFactor(rows[:5], 0.7).form == "dual"  # 5 rows use more than 5 features
+    reps = np.setdiff1d(np.arange(d), used)[:2]
+    y, b = rng.standard_normal((n, 2)), rng.standard_normal(d)
+    x = rng.standard_normal((4, d)) * (rng.random((4, d)) < 0.05)
+    x[:, used[:3]] = 1.0
+    x = sp.csr_matrix(x)
+    keep = np.r_[used, reps]
+    for f, g in ((primal, dual), (primal.restrict(keep), dual.restrict(keep))):
+        np.testing.assert_allclose(f.regress(y), g.regress(y), atol=1e-12)
+        np.testing.assert_allclose(f.matrix(), g.matrix(), atol=1e-12)
+        np.testing.assert_allclose(f.inverse_diagonal(), g.inverse_diagonal(), atol=1e-12)
+    np.testing.assert_allclose(primal.solve(b), dual.solve(b), atol=1e-12)
+    np.testing.assert_allclose(engine.elliptical_norms(x, primal.elliptical_factor()),
+                               engine.elliptical_norms(x, dual.elliptical_factor()), atol=1e-12)
+    with pytest.raises(ValueError, match="every used feature"):
+        primal.restrict(used[1:])
 
 
 def test_sparse_column_quadratic():
@@ -259,10 +296,68 @@ def test_elliptical_factors_save_load_and_old_format(tmp_path):
     meta = {"estimator": "PEVI", "params": params, "fit_params": est._fit_params, "n_actions": 2}
     old = load(save_npz(tmp_path / "v1.npz", "estimator", 1, arrays, meta))
     np.testing.assert_allclose(old.q_values(feat, 1), est.q_values(feat, 1), atol=1e-12)
+    # Sparse rows (version 3): R = C^-1 Psi saved as its two factors, Psi in CSR pieces.
+    # Sparse rows (version 3): R = C^-1 Psi saved as its two factors, Psi in CSR pieces
+    # (dual form, d > K); L_U^-1 on the used features U (primal form, |U| <= K).
     rng2 = np.random.default_rng(10)
-    _, sparse = _both(*_data(rng2, 10, 2, 30))
-    with pytest.raises(TypeError, match="sparse features"):
-        PEVI().fit(sparse).save(tmp_path / "s")
+    for K, d, stored in ((10, 30, "elliptical_cinv"), (30, 8, "elliptical_linv_data")):
+        _, sparse = _both(*_data(rng2, K, 2, d))
+        feat = _sparse_simplex(rng2, (4, 2, d))
+        for th in (False, True):
+            est = PEVI(beta=0.3, time_homogeneous=th).fit(sparse)
+            path = est.save(tmp_path / f"s{th}{d}")
+            with np.load(path, allow_pickle=False) as npz:
+                assert "elliptical_r" not in npz.files and stored in npz.files
+            back = load(path)
+            for h in range(2):
+                np.testing.assert_array_equal(back.q_values(feat, h), est.q_values(feat, h))
+
+
+def test_tampered_sparse_elliptical_factors_are_named(tmp_path):
+    _, sparse = _both(*_data(np.random.default_rng(17), 10, 2, 30))
+    good = PEVI(beta=0.3).fit(sparse).save(tmp_path / "good")
+    with np.load(good, allow_pickle=False) as npz:
+        ptr = npz["elliptical_psi_indptr"]
+    _assert_tampering_is_named(good, tmp_path, (
+        ("elliptical_psi_indices",
+         lambda a, m: a.update(elliptical_psi_indices=a["elliptical_psi_indices"] + 30)),
+        ("elliptical_psi_indptr", lambda a, m: a.update(elliptical_psi_indptr=ptr[:, ::-1].copy())),
+        ("elliptical_psi_indptr", lambda a, m: a.update(elliptical_psi_indptr=ptr.astype(float))),
+        ("elliptical_cinv", lambda a, m: a.update(elliptical_cinv=np.ones((2, 3, 4)))),
+        ("elliptical_storage", lambda a, m: m.update(elliptical_storage="csc"))))
+    rng = np.random.default_rng(18)
+    phi, rewards, next_phi = _data(rng, 30, 2, 8)
+    phi[..., 3] = next_phi[..., 3] = 0.0  # an unused feature (rows renormalized)
+    phi[..., 0] += 1e-3
+    next_phi[..., 0] += 1e-3
+    phi /= phi.sum(axis=-1, keepdims=True)
+    next_phi /= next_phi.sum(axis=-1, keepdims=True)
+    _, sparse = _both(phi, rewards, next_phi)
+    good = PEVI(beta=0.3).fit(sparse).save(tmp_path / "used")
+    with np.load(good, allow_pickle=False) as npz:
+        cols, sizes = npz["elliptical_cols"], npz["elliptical_sizes"]
+    _assert_tampering_is_named(good, tmp_path, (
+        ("elliptical_cols", lambda a, m: a.update(elliptical_cols=cols[::-1].copy())),
+        ("elliptical_sizes", lambda a, m: a.update(elliptical_sizes=sizes + 1)),
+        ("elliptical_linv_data", lambda a, m: a.update(elliptical_linv_data=np.ones(3))),
+        ("elliptical_c", lambda a, m: a.update(elliptical_c=-a["elliptical_c"]))))
+
+
+def _assert_tampering_is_named(good, tmp_path, changes):
+    """Each ``(field, change(arrays, meta))`` applied to a copy of the model file ``good``
+    makes load raise a ValueError naming ``field``."""
+    import json
+
+    with np.load(good, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    meta = json.loads(str(arrays.pop("__r2pvi_meta__")))
+    for field, change in changes:
+        a, m = dict(arrays), json.loads(json.dumps(meta))
+        change(a, m)
+        kind, version = m.pop("kind"), m.pop("format_version")
+        bad = save_npz(tmp_path / f"{field}.npz", kind, version, a, m)
+        with pytest.raises(ValueError, match=field):
+            load(bad)
 
 
 # ----------------------------------------------------------------------------- pooled steps
@@ -295,6 +390,29 @@ def test_pooled_equals_per_step_when_every_step_sees_the_same_transitions(name):
     for h in range(H):
         np.testing.assert_allclose(pooled.q_values(feat, h), per_step.q_values(feat, h),
                                    atol=1e-10)
+
+
+def test_pooled_views_and_stacked_copies_agree(tmp_path):
+    """In memory the pooled rows are views of the step-major arrays (no copy); read from a
+    dataset directory, or held as sparse rows, they are stacked step by step: the same fit."""
+    rng = np.random.default_rng(13)
+    phi, rewards, next_phi = _data(rng, 20, 4, 6)
+    next_values = np.full(next_phi.shape[:-1], np.nan)
+    next_values[:5, 1] = 0.5  # known values travel with their rows
+    ds = OfflineDataset.from_features(phi, rewards, next_phi, next_values)
+    views = engine._pooled_views(ds)
+    assert views is not None and np.shares_memory(views[0], ds._source.phi.array)
+    stacked = ds.save(tmp_path / "ds")
+    opened = OfflineDataset.open(stacked)
+    assert engine._pooled_views(opened) is None
+    sparse = SparseOfflineDataset.from_rows(
+        [sp.csr_matrix(phi[:, h]) for h in range(4)], rewards,
+        [sp.csr_matrix(next_phi[:, h].reshape(-1, 6)) for h in range(4)], 2, next_values)
+    for make in (lambda: R2PVI("tv", 0.3, beta=0.1), lambda: DRPVI(0.2, beta=0.1)):
+        want = _fit(make, ds, time_homogeneous=True).weights_
+        for other in (opened, sparse):
+            np.testing.assert_allclose(_fit(make, other, time_homogeneous=True).weights_,
+                                       want, atol=1e-10)
 
 
 def test_pooled_factors_one_gram_matrix(monkeypatch):
@@ -391,16 +509,45 @@ def test_tampered_elliptical_factors_are_named(tmp_path):
     rng = np.random.default_rng(16)
     ds = OfflineDataset.from_features(*_data(rng, 10, 2, 5))
     good = PEVI(beta=0.3).fit(ds).save(tmp_path / "good")
-    import json
+    _assert_tampering_is_named(good, tmp_path, (
+        ("elliptical_index", lambda a, m: m.update(elliptical_index=[0, 5])),
+        ("elliptical_r", lambda a, m: a.update(elliptical_r=np.ones((2, 3))))))
 
-    with np.load(good, allow_pickle=False) as npz:
-        arrays = {k: npz[k] for k in npz.files}
-    meta = json.loads(str(arrays.pop("__r2pvi_meta__")))
-    for field, change in (("elliptical_index", lambda a, m: m.update(elliptical_index=[0, 5])),
-                          ("elliptical_r", lambda a, m: a.update(elliptical_r=np.ones((2, 3))))):
-        a, m = dict(arrays), json.loads(json.dumps(meta))
-        change(a, m)
-        kind, version = m.pop("kind"), m.pop("format_version")
-        bad = save_npz(tmp_path / f"{field}.npz", kind, version, a, m)
-        with pytest.raises(ValueError, match=field):
-            load(bad)
+
+def _ragged_episodes(rng, n, horizon, n_actions, obs_dim=2):
+    """Episodes of 1..horizon+1 steps, terminated, truncated or cut at the horizon."""
+    eps = []
+    for k in range(n):
+        T = int(rng.integers(1, horizon + 2))
+        eps.append({"observations": rng.uniform(-1, 1, (T + 1, obs_dim)),
+                    "actions": rng.integers(0, n_actions, T), "rewards": rng.random(T),
+                    "terminations": np.r_[np.zeros(T - 1, bool), [k % 3 == 0]],
+                    "truncations": np.r_[np.zeros(T - 1, bool), [k % 3 == 1]]})
+    return eps
+
+
+def test_sparse_feature_maps_give_sparse_episode_datasets():
+    """from_episodes with a sparse tile coding: the dense dataset's every array and fit,
+    with no row densified (a SparseOfflineDataset)."""
+    from r2pvi.features import TileCoding, cross_actions
+
+    rng = np.random.default_rng(3)
+    H, A = 6, 3
+    eps = _ragged_episodes(rng, 25, H, A)
+    obs = np.concatenate([e["observations"] for e in eps])
+    maps = [cross_actions(TileCoding(n_tilings=4, n_tiles=4, sparse=s).fit(obs), A)
+            for s in (False, True)]
+    dense, sparse = (OfflineDataset.from_episodes(eps, m, A, horizon=H) for m in maps)
+    assert isinstance(sparse, SparseOfflineDataset)
+    assert not isinstance(dense, SparseOfflineDataset)
+    for h in range(H):
+        a, b = dense.step(h), sparse.step(h)
+        assert sp.issparse(b[0]) and isinstance(b[2], StackedSparse)
+        np.testing.assert_array_equal(a[0], b[0].toarray())
+        np.testing.assert_array_equal(a[1], b[1])
+        np.testing.assert_array_equal(a[2], b[2].matrix.toarray().reshape(a[2].shape))
+        if h < H - 1:
+            np.testing.assert_array_equal(a[3], b[3])
+    for est in (R2PVI("tv", 0.3, beta=0.05), PEVI(beta=0.1), DRPVI(0.2, beta=0.05)):
+        w_dense = est.fit(dense).weights_.copy()
+        np.testing.assert_allclose(est.fit(sparse).weights_, w_dense, rtol=0, atol=1e-10)

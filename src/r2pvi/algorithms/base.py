@@ -11,13 +11,14 @@ import inspect
 import numbers
 
 import numpy as np
+import scipy.sparse as sp
 
 from .._compat import KeywordParams, SklearnCompatMixin, not_fitted_error
 from .._io import file_array, file_error, load_npz, save_npz
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
-from ..duals.operators import GramFactor, GramMatrixError
+from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
@@ -25,7 +26,14 @@ __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
 # Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
 # ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
 # the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
-MODEL_FORMAT_VERSION = 2
+# Version 3: elliptical factors of sparse-feature fits, ``R = C^{-1} Psi`` kept as its two
+# factors: ``elliptical_cinv`` (G, n, n) and ``Psi`` in CSR pieces (``elliptical_psi_data``,
+# ``elliptical_psi_indices``, ``elliptical_psi_indptr`` (G, n + 1)), header
+# ``elliptical_storage = "sparse"``; or, for the primal form on the used features of sparse
+# rows, ``L_U^{-1}`` and ``U`` ragged by factor (``elliptical_linv_data``, ``elliptical_cols``,
+# ``elliptical_sizes`` (G,)), header ``elliptical_storage = "used"``. Dense fits still write
+# version-2 content.
+MODEL_FORMAT_VERSION = 3
 ESTIMATOR_REGISTRY: dict[str, type] = {}
 
 _FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
@@ -257,9 +265,11 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             "n_actions": self.n_actions_,
         }
         if getattr(self, "_elliptical", None) is not None:
-            index, rs, cs = _pack_elliptical(self._elliptical)
-            arrays["elliptical_r"], arrays["elliptical_c"] = rs, cs
+            index, packed, storage = _pack_elliptical(self._elliptical)
+            arrays.update(packed)
             meta["elliptical_index"] = index
+            if storage != "dense":
+                meta["elliptical_storage"] = storage
         return save_npz(path, "estimator", MODEL_FORMAT_VERSION, arrays, meta)
 
     @classmethod
@@ -399,36 +409,128 @@ def _load_elliptical(path, arrays, header, H: int, d: int, needed: bool):
         return [(np.linalg.solve(c, np.eye(d)), 0.0, 1.0) for c in chol]
     if not needed:
         return None
+    storage = header.get("elliptical_storage", "dense")
+    if storage == "sparse":
+        return _load_sparse_elliptical(path, arrays, header, H, d)
+    if storage == "used":
+        return _load_used_elliptical(path, arrays, header, H, d)
+    if storage != "dense":
+        raise file_error(path, "elliptical_storage", f"must be 'dense', 'sparse' or 'used', "
+                         f"got {storage!r}")
     rs = file_array(path, arrays, "elliptical_r", ndim=3)
     if rs.shape[0] < 1 or rs.shape[2] != d:
         raise file_error(path, "elliptical_r", f"must have shape (G >= 1, r, d = {d}), "
                          f"got {rs.shape}")
-    cs = file_array(path, arrays, "elliptical_c", shape=(rs.shape[0], 2))
-    index = header.get("elliptical_index")
-    if (not isinstance(index, list) or len(index) != H
-            or not all(isinstance(g, int) and not isinstance(g, bool) and 0 <= g < rs.shape[0]
-                       for g in index)):
-        raise file_error(path, "elliptical_index",
-                         f"must be a list of H = {H} integers in [0, {rs.shape[0]})")
+    cs, index = _elliptical_constants(path, arrays, header, H, rs.shape[0])
     return [(rs[g], float(cs[g, 0]), float(cs[g, 1])) for g in index]
 
 
-def _pack_elliptical(factors: list) -> tuple[list[int], np.ndarray, np.ndarray]:
-    """Distinct per-step elliptical factors as arrays ``(index (H,), R (G, r, d), c (G, 2))``
-    (pooled steps share one factor: G = 1)."""
+def _elliptical_constants(path, arrays, header, H: int, G: int):
+    """``elliptical_c (G, 2)`` and the step -> factor ``elliptical_index`` of a model file."""
+    cs = file_array(path, arrays, "elliptical_c", shape=(G, 2))
+    index = header.get("elliptical_index")
+    if (not isinstance(index, list) or len(index) != H
+            or not all(isinstance(g, int) and not isinstance(g, bool) and 0 <= g < G
+                       for g in index)):
+        raise file_error(path, "elliptical_index",
+                         f"must be a list of H = {H} integers in [0, {G})")
+    return cs, index
+
+
+def _load_sparse_elliptical(path, arrays, header, H: int, d: int):
+    """Version 3's sparse factors ``R = C^{-1} Psi``: ``C^{-1}`` dense, ``Psi`` as CSR pieces."""
+    cinv = file_array(path, arrays, "elliptical_cinv", ndim=3)
+    G, n = cinv.shape[0], cinv.shape[1]
+    if G < 1 or cinv.shape[2] != n:
+        raise file_error(path, "elliptical_cinv", f"must have shape (G >= 1, n, n), got "
+                         f"{cinv.shape}")
+    indptr = _int_array(path, arrays, "elliptical_psi_indptr", (G, n + 1))
+    data = file_array(path, arrays, "elliptical_psi_data", ndim=1)
+    indices = _int_array(path, arrays, "elliptical_psi_indices", data.shape)
+    counts = indptr[:, -1]
+    if (np.any(indptr[:, 0] != 0) or np.any(np.diff(indptr, axis=1) < 0)
+            or int(counts.sum()) != data.size):
+        raise file_error(path, "elliptical_psi_indptr", "must be CSR row pointers (starting "
+                         "at 0, non-decreasing) whose totals add up to the stored non-zeros")
+    if indices.size and (indices.min() < 0 or indices.max() >= d):
+        raise file_error(path, "elliptical_psi_indices", f"must lie in [0, d = {d})")
+    cs, index = _elliptical_constants(path, arrays, header, H, G)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    factors = []
+    for g in range(G):
+        s, e = starts[g], starts[g + 1]
+        psi = sp.csr_matrix((data[s:e], indices[s:e], indptr[g]), shape=(n, d))
+        factors.append(_SparseProduct(cinv[g], psi))
+    return [(factors[g], float(cs[g, 0]), float(cs[g, 1])) for g in index]
+
+
+def _load_used_elliptical(path, arrays, header, H: int, d: int):
+    """Version 3's used-feature factors ``L_U^{-1}`` (ragged by factor) and their features."""
+    sizes = _int_array(path, arrays, "elliptical_sizes", None)
+    if sizes.ndim != 1 or sizes.size < 1 or np.any(sizes < 1) or np.any(sizes > d):
+        raise file_error(path, "elliptical_sizes", f"must be G >= 1 sizes in [1, d = {d}]")
+    cols = _int_array(path, arrays, "elliptical_cols", (int(sizes.sum()),))
+    linv = file_array(path, arrays, "elliptical_linv_data", shape=(int((sizes**2).sum()),))
+    G = sizes.size
+    cs, index = _elliptical_constants(path, arrays, header, H, G)
+    if np.any(cs[:, 0] <= 0):
+        raise file_error(path, "elliptical_c", "must hold 1 / gamma > 0 in its first column")
+    ends, sq_ends = np.cumsum(sizes), np.cumsum(sizes**2)
+    factors = []
+    for g in range(G):
+        u = int(sizes[g])
+        c = cols[ends[g] - u:ends[g]]
+        if np.any(c < 0) or np.any(c >= d) or np.any(np.diff(c) <= 0):
+            raise file_error(path, "elliptical_cols", f"must be increasing features in [0, {d})")
+        lg = linv[sq_ends[g] - u * u:sq_ends[g]].reshape(u, u)
+        factors.append(_UsedFeaturesFactor(lg, c, 1.0 / float(cs[g, 0])))
+    return [(factors[g], 0.0, 1.0) for g in index]
+
+
+def _int_array(path, arrays: dict, name: str, shape: tuple | None) -> np.ndarray:
+    if name not in arrays:
+        raise file_error(path, name, "is missing")
+    arr = arrays[name]
+    if arr.dtype.kind not in "iu":
+        raise file_error(path, name, f"must be integers, got dtype {arr.dtype}")
+    if shape is not None and arr.shape != shape:
+        raise file_error(path, name, f"must have shape {shape}, got {arr.shape}")
+    return arr.astype(np.int64)
+
+
+def _pack_elliptical(factors: list) -> tuple[list[int], dict, str]:
+    """Distinct per-step elliptical factors as arrays: ``(index (H,), arrays, storage)``
+    with ``elliptical_r (G, r, d)`` (dense) or the sparse factors' pieces, and
+    ``elliptical_c (G, 2)`` (pooled steps share one factor: G = 1)."""
     seen: dict[int, int] = {}
     index, rs, cs = [], [], []
     for r, c0, c1 in factors:
-        if not isinstance(r, np.ndarray):
-            raise TypeError(
-                "cannot save an elliptical-penalty model fitted on sparse features (its factors "
-                "are kept as sparse products); refit it, or use penalty='l1' or 'l2'"
-            )
         key = id(r)
         if key not in seen:
             seen[key] = len(rs)
             rs.append(r)
             cs.append((c0, c1))
         index.append(seen[key])
-    return index, np.stack(rs), np.asarray(cs, dtype=float)
+    arrays = {"elliptical_c": np.asarray(cs, dtype=float)}
+    if all(isinstance(r, np.ndarray) for r in rs):
+        arrays["elliptical_r"] = np.stack(rs)
+        return index, arrays, "dense"
+    if all(isinstance(r, _UsedFeaturesFactor) for r in rs):
+        # c0 = 0, c1 = 1 for these; the first constant column carries 1 / gamma instead.
+        arrays["elliptical_c"] = np.array([[1.0 / r.gamma, 1.0] for r in rs])
+        arrays["elliptical_sizes"] = np.array([r.cols.size for r in rs], dtype=np.int64)
+        arrays["elliptical_cols"] = np.concatenate([r.cols for r in rs]).astype(np.int64)
+        arrays["elliptical_linv_data"] = np.concatenate([r.linv.ravel() for r in rs])
+        return index, arrays, "used"
+    if not all(isinstance(r, _SparseProduct) for r in rs) or len(
+            {r.cinv.shape for r in rs}) != 1:
+        raise TypeError("cannot save elliptical factors that mix dense and sparse forms or "
+                        "sizes; use penalty='l1' or 'l2'")
+    psis = [r.psi for r in rs]
+    arrays["elliptical_cinv"] = np.stack([r.cinv for r in rs])
+    arrays["elliptical_psi_data"] = np.concatenate([p.data for p in psis]).astype(float)
+    arrays["elliptical_psi_indices"] = np.concatenate([p.indices for p in psis]).astype(
+        np.int64)
+    arrays["elliptical_psi_indptr"] = np.stack([p.indptr for p in psis]).astype(np.int64)
+    return index, arrays, "sparse"
 
