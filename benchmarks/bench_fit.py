@@ -8,13 +8,23 @@ estimator is fitted once (round-robin, after one warm-up fit each).
 
     python benchmarks/bench_fit.py                 # K=10000, d=30, H=20
     python benchmarks/bench_fit.py --K 2000 --d 60
+    python benchmarks/bench_fit.py --baseline /tmp/old/src   # also time another source tree
+
+``--baseline`` takes a directory holding another version's ``r2pvi`` package (e.g. from
+``git archive <rev> src | tar -x -C /tmp/old``), imports it under another name and times it
+in the same rounds, so that old and new ratios come from one run.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import shutil
 import statistics
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -24,23 +34,42 @@ from r2pvi.algorithms import DRPVI, DRVIL
 from r2pvi.duals.operators import RidgeExpectation, cholesky_gram
 
 
-def make_dataset(K, H, d, A=2, seed=0):
+def make_dataset(K, H, d, A=2, seed=0, package=r2pvi):
     rng = np.random.default_rng(seed)
     phi = rng.dirichlet(np.ones(d), size=(K, H))
     next_phi = rng.dirichlet(np.ones(d), size=(K, H, A))
     theta = rng.uniform(0, 1, size=(H, d))
     rewards = np.einsum("khd,hd->kh", phi, theta)
-    return r2pvi.OfflineDataset.from_features(phi, rewards, next_phi), theta
+    return package.OfflineDataset.from_features(phi, rewards, next_phi), theta
 
 
-def floor_fit(ds, gamma=1.0):
+def floor_fit(ds, gamma=1.0, package=None):
     """The H Gram matrices (Cholesky-factored) and the H ridge solves, with the BLAS threads
     of a fit (one unless ``R2PVI_BLAS_THREADS`` says otherwise), so the ratios compare like
-    with like."""
-    with limit_blas():
+    with like. ``package``: another version's r2pvi (``--baseline``), None for this one."""
+    if package is None:
+        ridge, gram, blas = RidgeExpectation, cholesky_gram, limit_blas
+    else:
+        ops = importlib.import_module(package.__name__ + ".duals.operators")
+        ridge, gram = ops.RidgeExpectation, ops.cholesky_gram
+        blas = importlib.import_module(package.__name__ + "._threads").limit_blas
+    with blas():
         for h in range(ds.horizon):
             phi, rewards, _, _ = ds.step(h)
-            RidgeExpectation(phi, cholesky_gram(phi, gamma))(rewards)
+            ridge(phi, gram(phi, gamma))(rewards)
+
+
+def import_baseline(src: str):
+    """Another version's ``r2pvi`` package (``src/r2pvi``) imported as ``r2pvi_baseline``
+    (its imports are relative, so a renamed copy is a separate package)."""
+    root = Path(src)
+    pkg = root / "r2pvi" if (root / "r2pvi").is_dir() else root
+    if not (pkg / "__init__.py").exists():
+        raise ValueError(f"--baseline must be a directory holding the r2pvi package, got {src}")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_fit_"))
+    shutil.copytree(pkg, tmp / "r2pvi_baseline")
+    sys.path.insert(0, str(tmp))
+    return importlib.import_module("r2pvi_baseline")
 
 
 def interleaved_medians(fns: dict, repeats: int) -> dict:
@@ -57,17 +86,23 @@ def interleaved_medians(fns: dict, repeats: int) -> dict:
     return {name: statistics.median(t) for name, t in times.items()}
 
 
-def estimators(theta):
+def estimators(theta, package=None):
     kw = {"reward_weights": theta, "r_max": 1.0}
+    if package is None:
+        r, drpvi, drvil = r2pvi, DRPVI, DRVIL
+    else:
+        r = package
+        algs = importlib.import_module(package.__name__ + ".algorithms")
+        drpvi, drvil = algs.DRPVI, algs.DRVIL
     return {
-        "PEVI": r2pvi.PEVI(**kw),
-        "R2PVI-TV": r2pvi.R2PVI("tv", 1.0, **kw),
-        "R2PVI-KL": r2pvi.R2PVI("kl", 1.0, **kw),
-        "R2PVI-chi2": r2pvi.R2PVI("chi2", 1.0, **kw),
-        "DRPVI": DRPVI(0.1, **kw),
-        "DRVI-L": DRVIL(0.1, **kw),
-        "VA-DRPVI": DRPVI(0.1, variance_aware=True, **kw),
-        "VA-R2PVI-TV": r2pvi.R2PVI("tv", 1.0, variance_aware=True, **kw),
+        "PEVI": r.PEVI(**kw),
+        "R2PVI-TV": r.R2PVI("tv", 1.0, **kw),
+        "R2PVI-KL": r.R2PVI("kl", 1.0, **kw),
+        "R2PVI-chi2": r.R2PVI("chi2", 1.0, **kw),
+        "DRPVI": drpvi(0.1, **kw),
+        "DRVI-L": drvil(0.1, **kw),
+        "VA-DRPVI": drpvi(0.1, variance_aware=True, **kw),
+        "VA-R2PVI-TV": r.R2PVI("tv", 1.0, variance_aware=True, **kw),
     }
 
 
@@ -78,19 +113,27 @@ def main(argv=None):
     ap.add_argument("--H", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--only", nargs="*", help="estimator names to time")
+    ap.add_argument("--baseline", help="directory of another version's r2pvi package (its "
+                    "src/), timed in the same rounds")
     args = ap.parse_args(argv)
-    ds, theta = make_dataset(args.K, args.H, args.d)
-    fns = {"floor": lambda: floor_fit(ds)}
-    for name, est in estimators(theta).items():
-        if not args.only or name in args.only or name == "R2PVI-TV":
-            fns[name] = lambda est=est: est.fit(ds)
+    versions = {"": None}
+    if args.baseline:
+        versions["baseline "] = import_baseline(args.baseline)
+    fns = {}
+    for label, package in versions.items():
+        ds, theta = make_dataset(args.K, args.H, args.d, package=package or r2pvi)
+        fns[label + "floor"] = lambda ds=ds, package=package: floor_fit(ds, package=package)
+        for name, est in estimators(theta, package).items():
+            if not args.only or name in args.only or name == "R2PVI-TV":
+                fns[label + name] = lambda est=est, ds=ds: est.fit(ds)
     med = interleaved_medians(fns, args.repeats)
-    floor, tv = med.pop("floor"), med["R2PVI-TV"]
     print(f"K={args.K} d={args.d} H={args.H} A=2; median of {args.repeats} interleaved rounds")
-    print(f"{'':<20s} {'fit time':>10s} {'/ floor':>8s} {'/ R2PVI-TV':>11s}")
-    print(f"{'floor':<20s} {floor * 1e3:8.1f} ms {1:7.2f}x {floor / tv:10.2f}x")
-    for name, t in med.items():
-        print(f"{name:<20s} {t * 1e3:8.1f} ms {t / floor:7.2f}x {t / tv:10.2f}x")
+    for label in versions:
+        floor, tv = med[label + "floor"], med[label + "R2PVI-TV"]
+        print(f"{label + 'fit':<20s} {'time':>10s} {'/ floor':>8s} {'/ R2PVI-TV':>11s}")
+        for name, t in med.items():
+            if name.startswith(label) and (label or not name.startswith("baseline ")):
+                print(f"{name:<20s} {t * 1e3:8.1f} ms {t / floor:7.2f}x {t / tv:10.2f}x")
     print("floor = the H Gram matrices with their Cholesky factors and the H ridge solves")
 
 

@@ -88,7 +88,10 @@ def rbf_map(grid):
 
     def feature_map(obs, act):
         z = (obs[:, None, :] - centers[None]) / width
-        k = np.exp(-0.5 * np.einsum("nmj,nmj->nm", z, z))
+        # A softmax: shifting by the row's largest logit keeps states far from every center
+        # finite (exp(-0.5 |z|^2) alone underflows to 0/0 = NaN there).
+        logits = -0.5 * np.einsum("nmj,nmj->nm", z, z)
+        k = np.exp(logits - logits.max(axis=1, keepdims=True))
         k /= k.sum(axis=1, keepdims=True)
         out = np.zeros((obs.shape[0], A * m))
         for a in range(A):
@@ -133,7 +136,9 @@ def dense_dataset(K, grid, seed=0):
         for a in range(A):
             next_phi[h, :, a] = fmap(states[:, h + 1], np.full(K, a))
     # The private constructor takes step-major arrays as they are: at K = 1000 the public
-    # from_features would hold a second 5.5 GB copy during construction.
+    # from_features would hold a second 5.5 GB copy during construction. It does not
+    # validate, so check here what from_features would.
+    assert np.isfinite(phi).all() and np.isfinite(next_phi).all() and (next_phi >= 0).all()
     ds = OfflineDataset(_phi=phi, _rewards=np.ascontiguousarray(rewards.T), _next_phi=next_phi,
                         _next_values=None)
     return ds, d

@@ -163,7 +163,6 @@ def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonn
     """
     flat, lead = _rows(phi)  # one GEMM, not a batch of small products
     if kind == "l1" and beta != 0.0:
-        # One pass over the features for the linear part and the penalty together.
         scale = -beta * np.sqrt(inv_diag)
         if nonneg:  # |phi| = phi: one matrix-vector product (an n x 2 GEMM costs ~3x one)
             q = np.asarray(flat @ (weights_h + scale))

@@ -8,6 +8,7 @@ thread-local pool that the engine empties when a fit ends.
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -16,17 +17,20 @@ _local = threading.local()
 
 
 def buffer(key: str, shape: tuple[int, ...]) -> np.ndarray:
-    """An uninitialized float64 array of ``shape``, reused across calls with the same key.
+    """An uninitialized C-contiguous float64 array of ``shape``, reused across calls with the
+    same key: a view of the key's memory, which grows only when a call asks for more (so
+    that calls with varying shapes, e.g. the active factors of an iteration, fault no pages).
 
     The content is valid until the next call with the same key in the same thread.
     """
     pool = getattr(_local, "pool", None)
     if pool is None:
         pool = _local.pool = {}
+    size = math.prod(shape)
     buf = pool.get(key)
-    if buf is None or buf.shape != shape:
-        buf = pool[key] = np.empty(shape)
-    return buf
+    if buf is None or buf.size < size:
+        buf = pool[key] = np.empty(size)
+    return buf[:size].reshape(shape)
 
 
 def release() -> None:

@@ -63,6 +63,10 @@ class ExpectationOperator:
         """Explicit weights ``M[dims]`` of shape (len(dims), n); all rows when ``dims`` is None."""
         raise NotImplementedError
 
+    def apply_pair(self, y1: np.ndarray, y2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(E(y1), E(y2))`` for two vectors ``(n,)`` (subclasses may share one pass)."""
+        return self(y1), self(y2)
+
     @property
     def matrix(self) -> np.ndarray:
         """The full (d, n) weight matrix (computed once, then cached)."""
@@ -98,7 +102,7 @@ class ExpectationOperator:
         Returns :class:`SortedBlocks` with ``alphas (p,)`` as in :meth:`sorted_weights` and,
         for every block of 16 consecutive sorted points, the sums of ``M``, ``M v`` and (with
         ``moments=3``) ``M v^2``, and an upper bound on the sum of ``|M|`` (each ``(d, p/16)``),
-        plus a function giving the exact weight columns of chosen blocks.
+        plus a function giving the exact weights of chosen (factor, block) pairs.
         """
         alphas, weights, m = self.sorted_weights(v, breakpoints_extra)
         d, p = weights.shape
@@ -107,7 +111,8 @@ class ExpectationOperator:
         sums = np.einsum("dbk,bjk->jdb", w3, powers)
         sabs = np.abs(w3).sum(axis=2)
         s2 = sums[2] if moments == 3 else None
-        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, lambda blk: w3[:, blk])
+        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs,
+                            lambda rows, blk: w3[rows, blk])
 
     def truncation_cumulants(self, v: np.ndarray, breakpoints_extra=()) -> TruncationCumulants:
         """Expectations of the truncated values ``[V]_alpha = min(V, alpha)`` for every alpha.
@@ -137,6 +142,8 @@ class ExpectationOperator:
 
 
 BLOCK = 16
+# Rows per chunk of RidgeExpectation.apply_pair: 1024 x 30 float64 = 240 kB, within L2.
+_PAIR_CHUNK = 1024
 
 
 def prefix_sums(x: np.ndarray) -> np.ndarray:
@@ -191,14 +198,15 @@ class SortedBlocks:
 
     Attributes: ``alphas (p,)``, ``m`` (real breakpoints), ``s0, s1, s2 (d, nb)`` the block sums
     of ``M``, ``M v``, ``M v^2``, ``sabs (d, nb)`` an upper bound on the block sums of ``|M|``,
-    and ``columns(blocks) -> (d, len(blocks), 16)`` the exact weights of chosen blocks.
+    and ``pairs(rows, blocks) -> (P, 16)`` the exact weights of factor ``rows[p]`` on block
+    ``blocks[p]``.
     """
 
-    __slots__ = ("alphas", "m", "s0", "s1", "s2", "sabs", "columns")
+    __slots__ = ("alphas", "m", "s0", "s1", "s2", "sabs", "pairs")
 
-    def __init__(self, alphas, m, s0, s1, s2, sabs, columns):
+    def __init__(self, alphas, m, s0, s1, s2, sabs, pairs):
         self.alphas, self.m, self.s0, self.s1, self.s2 = alphas, m, s0, s1, s2
-        self.sabs, self.columns = sabs, columns
+        self.sabs, self.pairs = sabs, pairs
 
 
 class TruncationCumulants:
@@ -670,7 +678,28 @@ class RidgeExpectation(ExpectationOperator):
         self.primal_dense = self.factor.form == "primal" and not sp.issparse(phi)
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
+        if self.primal_dense and self.weights is None and np.ndim(y) == 1:
+            # One vector (the duals' case): ``y^T Phi`` (a GEMV on C-ordered rows, faster than
+            # ``Phi^T y``) and ``Lambda^{-1} = L^{-T} L^{-1}`` by two d x d products with the
+            # triangular inverse, which the step forms anyway (``inverse_diagonal``).
+            linv = self.factor.linv
+            return linv.T @ (linv @ (np.asarray(y, dtype=float) @ self.phi))
         return self.factor.regress(y)
+
+    def apply_pair(self, y1: np.ndarray, y2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(E(y1), E(y2))``: for dense primal rows, both ``y^T Phi`` by chunks of rows that
+        stay in cache between the two products (one pass over ``Phi`` from memory instead of
+        two; measured 0.31 ms against 0.54 ms at n = 10,000, d = 30 from a cold cache)."""
+        if not (self.primal_dense and self.weights is None):
+            return self(y1), self(y2)
+        phi = self.phi
+        f1, f2 = np.zeros(self.n_dims), np.zeros(self.n_dims)
+        for s in range(0, self.n_points, _PAIR_CHUNK):
+            rows = phi[s:s + _PAIR_CHUNK]
+            f1 += y1[s:s + _PAIR_CHUNK] @ rows
+            f2 += y2[s:s + _PAIR_CHUNK] @ rows
+        linv = self.factor.linv
+        return linv.T @ (linv @ f1), linv.T @ (linv @ f2)
 
     @property
     def chol_inverse(self) -> np.ndarray:
@@ -727,27 +756,30 @@ class RidgeExpectation(ExpectationOperator):
             return super().sorted_blocks(v, breakpoints_extra, moments)
         # M = Lambda^{-1} X^T is linear in the features: sum each block in feature space
         # (one batched product), then map the (nb, d) sums by Lambda^{-1}. |M| is bounded by
-        # |Lambda^{-1}| |X|; exact columns are formed only for the blocks asked for.
+        # |Lambda^{-1}| |X|; exact weights are formed only for the (factor, block) pairs asked
+        # for: row i of Lambda^{-1} times the block's 16 feature rows.
         alphas, xs, m = self._sorted_features(v, breakpoints_extra)
         d = self.n_dims
         x3 = xs.reshape(-1, BLOCK, d)
         fsum = np.matmul(_block_powers(alphas, moments), x3)  # (nb, moments, d)
         linv = self.chol_inverse
+        gram_inv = linv.T @ linv  # Lambda^{-1} (d x d)
         nb = fsum.shape[0]
         # (nb * moments, d) @ Lambda^{-1} as one GEMM (it is symmetric), then (moments, d, nb).
-        sums = (fsum.reshape(-1, d) @ (linv.T @ linv)).reshape(nb, moments, d).transpose(1, 2, 0)
+        sums = (fsum.reshape(-1, d) @ gram_inv).reshape(nb, moments, d)
+        # (moments, d, nb) C-ordered: the per-factor running sums over blocks read rows.
+        sums = np.ascontiguousarray(sums.transpose(1, 2, 0))
         if self.nonnegative_features is None:
             self.nonnegative_features = bool((self.phi >= 0).all())
         nonneg = self.nonnegative_features and self.weights is None
         fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)
-        sabs = np.abs(linv.T @ linv) @ fabs.T
+        sabs = np.abs(gram_inv) @ fabs.T
 
-        def columns(blocks):
-            cols = x3[blocks].reshape(-1, d)  # (len * 16, d)
-            return (linv.T @ (linv @ cols.T)).reshape(d, len(blocks), BLOCK)
+        def pairs(rows, blocks):
+            return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]  # (P, 16)
 
         s2 = sums[2] if moments == 3 else None
-        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, columns)
+        return SortedBlocks(alphas, m, sums[0], sums[1], s2, sabs, pairs)
 
     def inverse_diagonal(self) -> np.ndarray:
         """``diag(Lambda^{-1})`` without forming the inverse (see :class:`GramFactor`)."""

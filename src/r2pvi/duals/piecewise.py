@@ -152,19 +152,44 @@ class BlockScan:
         s0, s1, s2 = sb.s0, sb.s1, sb.s2
         self._p0, self._p1 = (np.cumsum(s, axis=1) - s for s in (s0, s1))
         self._p2 = np.cumsum(s2, axis=1) - s2 if second_moment else None
-        self._total = s0.sum(axis=1, keepdims=True)
-        tail = self._total - self._p0  # weight of the points at or after each block start
+        self._total = self._p0[:, -1:] + s0[:, -1:]
+        self._tail = self._total - self._p0  # weight of the points at or after a block start
+        self._s0, self._sabs = s0, sb.sabs
         self._al3 = sb.alphas.reshape(-1, BLOCK)
         self.start = self._al3[:, 0]
         self.end = np.append(self.start[1:], sb.alphas[-1])
         self.top = float(sb.alphas[-1])
-        self.e1_start = self._p1 + tail * self.start
-        self.e1_top = s1.sum(axis=1)
+        self.e1_start = self._p1 + self._tail * self.start
+        self.e1_top = self._p1[:, -1] + s1[:, -1]
         if second_moment:
-            self.e2_start = self._p2 + tail * self.start**2
-            self.e2_top = s2.sum(axis=1)
-        self.slope = np.abs(tail - s0) + sb.sabs
-        self._columns = sb.columns
+            self.e2_start = self._p2 + self._tail * self.start**2
+            self.e2_top = self._p2[:, -1] + s2[:, -1]
+        self._pairs = sb.pairs
+
+    @property
+    def slope(self):
+        """A bound on ``|dE1/dalpha|`` inside each block (the weight after the block plus the
+        block's sum of ``|M|``)."""
+        return np.abs(self._tail - self._s0) + self._sabs
+
+    # dE1/dalpha inside a block is the weight of the points above alpha: the weight after the
+    # block plus a part of the block's, which lies between the sums of the block's negative and
+    # positive weights, (s0 -+ sum |M|) / 2.
+    @property
+    def b_lo(self):
+        """A lower bound on ``dE1/dalpha`` inside each block."""
+        return self._tail - 0.5 * (self._s0 + self._sabs)
+
+    @property
+    def b_hi(self):
+        """An upper bound on ``dE1/dalpha`` inside each block."""
+        return self._tail - 0.5 * (self._s0 - self._sabs)
+
+    def report(self, totals: dict | None) -> None:
+        """Put ``E_i(1)`` (``"mass"``) and ``E_i(v)`` (``"mean"``) into ``totals`` (if a dict)."""
+        if totals is not None:
+            totals["mass"] = self._total[:, 0]
+            totals["mean"] = self.e1_top
 
     def segments(self, rows, blocks):
         """Exact coefficients ``(a, b, c, alphas)``, each ``(P, 17)``, on every segment of the
@@ -172,8 +197,7 @@ class BlockScan:
         ``E2 = c_k + b_k alpha^2``; the last column is the next block's start, reached by the
         block's last segment (its coefficients repeated). ``c`` is None without the second
         moment."""
-        uniq, inverse = np.unique(blocks, return_inverse=True)
-        wb = self._columns(uniq)[rows, inverse]  # (P, 16) exact weights
+        wb = self._pairs(rows, blocks)  # (P, 16) exact weights
         ab = self._al3[blocks]
         a = self._p1[rows, blocks, None] + np.cumsum(wb * ab, axis=1)
         b = self._total[rows] - (self._p0[rows, blocks, None] + np.cumsum(wb, axis=1))
@@ -185,21 +209,32 @@ class BlockScan:
         return last(a), last(b), last(c), al
 
 
-def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, extra=()):
-    """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc)."""
+def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, extra=(),
+                  totals: dict | None = None):
+    """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc).
+
+    ``totals``, a dict, receives ``"mass"`` and ``"mean"``: ``E_i(1)`` and ``E_i(v)`` from the
+    block sums (no further pass over the data)."""
     scan = BlockScan(E, v, extra)
+    scan.report(totals)
     best = chi2_objective(scan.e1_start, scan.e2_start, lam, mean_clip, second_clip).max(axis=1)
     top = chi2_objective(scan.e1_top, scan.e2_top, lam, mean_clip, second_clip)
     best = np.maximum(best, top)
     # Bounds on each block: E1 within slope * width of its start, E2 within slope * the
     # block's range of alpha^2; g grows with E1 (convex in the clipped E1) and falls with E2.
+    # dE1/dalpha = B in [b_lo, b_hi] and dE2 = B d(alpha^2) (alpha^2 monotone on a block that
+    # does not straddle 0; else the cruder bound with |B| <= slope).
     span1 = scan.end - scan.start
     start2, end2 = scan.start**2, scan.end**2
-    span2 = np.maximum(start2, end2) - np.where((scan.start < 0) & (scan.end > 0), 0.0,
-                                                np.minimum(start2, end2))
-    e1_lo = scan.e1_start - scan.slope * span1
-    e1_hi = scan.e1_start + scan.slope * span1
-    e2_lo = scan.e2_start - scan.slope * span2
+    straddle = (scan.start < 0) & (scan.end > 0)
+    b_lo, b_hi = scan.b_lo, scan.b_hi
+    e1_lo = scan.e1_start + np.minimum(b_lo, 0.0) * span1
+    e1_hi = scan.e1_start + np.maximum(b_hi, 0.0) * span1
+    delta2 = end2 - start2
+    e2_lo = scan.e2_start + np.minimum(np.minimum(b_lo * delta2, b_hi * delta2), 0.0)
+    if straddle.any():
+        span2 = np.maximum(start2, end2)[straddle]
+        e2_lo[:, straddle] = scan.e2_start[:, straddle] - scan.slope[:, straddle] * span2
     upper = np.maximum(chi2_objective(e1_lo, 0.0, lam, mean_clip),
                        chi2_objective(e1_hi, 0.0, lam, mean_clip))
     upper -= 0.25 / lam * (e2_lo if second_clip is None else np.clip(e2_lo, *second_clip))
@@ -210,14 +245,16 @@ def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=No
     return best
 
 
-def tv_ball_max(E: ExpectationOperator, v, rho) -> np.ndarray:
+def tv_ball_max(E: ExpectationOperator, v, rho, totals: dict | None = None) -> np.ndarray:
     """``max_k E_i([V]_alpha_k) - rho_i alpha_k`` over every breakpoint ``alpha_k`` (the
-    piecewise-linear TV-ball dual without its constant), by the same branch and bound."""
+    piecewise-linear TV-ball dual without its constant), by the same branch and bound;
+    ``totals`` as in :func:`blockwise_max`."""
     scan = BlockScan(E, v, second_moment=False)
+    scan.report(totals)
     f_start = scan.e1_start - rho[:, None] * scan.start
     best = np.maximum(f_start.max(axis=1), scan.e1_top - rho * scan.top)
-    # d/dalpha (E1 - rho alpha) = B - rho <= slope - rho inside a block.
-    upper = f_start + (scan.end - scan.start) * np.maximum(scan.slope - rho[:, None], 0.0)
+    # d/dalpha (E1 - rho alpha) = B - rho <= b_hi - rho inside a block.
+    upper = f_start + (scan.end - scan.start) * np.maximum(scan.b_hi - rho[:, None], 0.0)
     rows, blocks = np.nonzero(upper > best[:, None])
     if rows.size:
         a, b, _, al = scan.segments(rows, blocks)
