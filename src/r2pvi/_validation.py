@@ -7,15 +7,17 @@ import numbers
 import numpy as np
 
 
-def as_float_array(x, name: str, ndim: int | None = None, allow_nan: bool = False) -> np.ndarray:
-    """Return ``x`` as a float64 array (a copy), checking dtype, dimension and finiteness."""
+def as_float_array(x, name: str, ndim: int | None = None, allow_nan: bool = False,
+                   copy: bool = True) -> np.ndarray:
+    """Return ``x`` as a float64 array (a copy unless ``copy=False``, for callers that only
+    read it), checking dtype, dimension and finiteness."""
     raw = np.asarray(x) if not isinstance(x, str) else None
     if raw is None or raw.dtype.kind not in "biuf":
         kind = type(x).__name__ if raw is None else f"an array of dtype {raw.dtype}"
         if raw is not None and raw.dtype.kind == "c":
             raise TypeError(f"{name} must be real, got a complex array")
         raise TypeError(f"{name} must be a numeric (float) array, got {kind}")
-    arr = np.array(raw, dtype=np.float64, copy=True)
+    arr = np.array(raw, dtype=np.float64, copy=True) if copy else np.asarray(raw, np.float64)
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
     bad = np.isinf(arr) if allow_nan else ~np.isfinite(arr)

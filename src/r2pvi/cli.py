@@ -161,12 +161,25 @@ def _reproduce(args) -> int:
     if not args.no_progress:
         _need("tqdm", "experiments", "the progress bars (pass --no-progress)")
     out = _check_out(args.out)  # last check: it creates the directory
-    from .experiments.reproduce import reproduce_figure
+    from .experiments import reproduce
 
+    finished = []
     for name, settings in plan:
-        reproduce_figure(name, out, overrides=settings, seed=args.seed, backend=backend,
-                         jobs=jobs, scheduler=args.scheduler, progress=not args.no_progress,
-                         plot=not args.no_plot)
+        result = reproduce.reproduce_figure(
+            name, out, overrides=settings, seed=args.seed, backend=backend, jobs=jobs,
+            scheduler=args.scheduler, progress=not args.no_progress, plot=False)
+        finished.append((name, result["rows"], result["settings"]))
+    if not args.no_plot:
+        # The plots are drawn after the sweeps, in parallel (joblib) when there are several:
+        # drawn one by one between the sweeps they kept a core idle.
+        parallel = jobs if backend == "joblib" else 1
+        if len(finished) > 1:
+            print(f"\ndrawing {len(finished)} plots"
+                  + (f" in {min(parallel, len(finished))} processes" if parallel > 1 else ""),
+                  flush=True)
+        reproduce.draw_plots(finished, out, jobs=parallel)
+        if len(finished) > 1:
+            print(f"plots (PNG and PDF) in {out}")
     return 0
 
 

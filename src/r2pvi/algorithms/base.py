@@ -190,7 +190,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         known (NaN: use the learned Q), as in the dataset.
         """
         self._check_fitted()
-        phi_all = as_float_array(phi_all, "phi_all")
+        phi_all = as_float_array(phi_all, "phi_all", copy=False)  # read only
         if phi_all.ndim == 2:
             raise ValueError(
                 "phi_all must have shape (n, A, d); for one state pass phi_all[None]"

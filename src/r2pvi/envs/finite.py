@@ -9,7 +9,7 @@ import numpy as np
 from .._validation import as_float_array, as_index_array, check_scalar
 from ..data import OfflineDataset
 from ._dataset import Trajectories
-from ._sampling import as_generator, check_count, sample_categorical
+from ._sampling import as_generator, check_count, sample_rows
 from .policies import policy_table
 
 __all__ = ["FiniteLinearMDP"]
@@ -259,21 +259,23 @@ class FiniteLinearMDP:
         K = check_count(n_trajectories, "n_trajectories")
         pi = policy_table(self, policy)
         rng = as_generator(seed)
-        H = self.horizon
-        states = np.empty((K, H), dtype=np.int64)
-        actions = np.empty((K, H), dtype=np.int64)
-        next_states = np.empty((K, H), dtype=np.int64)
-        rewards = np.empty((K, H))
-        s = sample_categorical(np.broadcast_to(self._initial, (K, self.n_states)), rng)
+        H, S, A = self.horizon, self.n_states, self.n_actions
+        # Filled step-major (contiguous rows per step), returned as (K, H) views.
+        states = np.empty((H, K), dtype=np.int64)
+        actions = np.empty((H, K), dtype=np.int64)
+        next_states = np.empty((H, K), dtype=np.int64)
+        rewards = np.empty((H, K))
+        s = sample_rows(self._initial[None], np.zeros(K, dtype=np.intp), rng)
         for h in range(H):
-            a = sample_categorical(pi[h, s], rng)
-            nxt = sample_categorical(self.transitions[h, s, a], rng)
-            states[:, h], actions[:, h], next_states[:, h] = s, a, nxt
-            rewards[:, h] = self.reward_table[h, s, a]
+            a = sample_rows(pi[h], s, rng)
+            pair = s * A + a  # the (state, action) row of the step's kernel
+            nxt = sample_rows(self.transitions[h].reshape(S * A, S), pair, rng)
+            states[h], actions[h], next_states[h] = s, a, nxt
+            rewards[h] = self.reward_table[h].reshape(-1)[pair]
             if self._reward_noise > 0.0:
-                rewards[:, h] += self._reward_noise * rng.standard_normal(K)
+                rewards[h] += self._reward_noise * rng.standard_normal(K)
             s = nxt
-        return Trajectories(states, actions, rewards, next_states)
+        return Trajectories(states.T, actions.T, rewards.T, next_states.T)
 
     def collect(self, n_trajectories: int, policy="uniform", seed=None) -> OfflineDataset:
         """An offline dataset of ``n_trajectories`` trajectories sampled by ``policy``.
@@ -303,12 +305,16 @@ class FiniteLinearMDP:
             raise ValueError(f"rewards must have shape (K, H) = {(K, H)}, got {rewards.shape}")
         steps = np.arange(H)
         next_steps = np.minimum(steps + 1, H - 1)  # the row of h = H-1 is never used
+        # Gathered step-major, (H, K, d), and handed over as a (K, H, d) view: the dataset
+        # stores it without another copy.
+        pair = states.T * A + actions.T  # (H, K) rows of the (S * A, d) feature table
         if self._phi.ndim == 4:
-            phi = self._phi[steps, states, actions]
+            phi = self._phi.reshape(H, S * A, -1)[steps[:, None], pair]
             table = self._phi[next_steps]  # table[h]: the features of step h's next states
         else:
-            phi = self._phi[states, actions]
+            phi = self._phi.reshape(S * A, -1).take(pair, axis=0)
             table = self._phi
+        phi = phi.swapaxes(0, 1)
         # Next states are indices into the (S, A, d) feature table: nothing per sample is
         # stored, and V_{h+1} is computed once per state and gathered by index.
         return OfflineDataset.from_next_state_table(

@@ -105,16 +105,36 @@ class AmericanPutOption:
     def features(self, prices) -> np.ndarray:
         """Hold features ``(n, d)`` of prices ``(n,)`` (zero for NaN, the ended state)."""
         s = np.asarray(prices, dtype=float).reshape(-1)
+        return self._hat(s, np.empty((s.size, self.d)))
+
+    def _hat(self, s: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """``max{0, 1 - |s - s_i| / Delta}`` written into ``out (n, d)``; rows of NaN prices
+        are zero.
+
+        Only the anchors ``i = j - 1, ..., j + 2`` around ``j = floor((s - s_1) / Delta)`` are
+        computed (with the formula's operations, so the values are the same bits): every
+        other anchor is at least ``Delta`` (plus round-off margins) from ``s``, where the hat
+        is 0.
+        """
+        out[...] = 0.0
         with np.errstate(invalid="ignore"):
-            out = np.maximum(0.0, 1.0 - np.abs(s[:, None] - self.anchors) / self.spacing)
-        out[np.isnan(s)] = 0.0
+            base = np.floor((s - self.first_anchor) / self.spacing)
+        finite = np.isfinite(base)
+        base[~finite] = -self.d - 4  # out of range for every candidate below
+        for shift in (-1.0, 0.0, 1.0, 2.0):
+            j = base + shift
+            rows = np.flatnonzero((j >= 0) & (j < self.d))
+            cols = j[rows].astype(np.intp)
+            value = 1.0 - np.abs(s[rows] - self.anchors[cols]) / self.spacing
+            out[rows, cols] = np.maximum(0.0, value)
         return out
 
     def phi_all(self, prices) -> np.ndarray:
         """Features of both actions ``(n, 2, d)``: hold features and zeros for exercise."""
-        hold = self.features(prices)
-        out = np.zeros((hold.shape[0], 2, self.d))
-        out[:, HOLD] = hold
+        s = np.asarray(prices, dtype=float).reshape(-1)
+        out = np.empty((s.size, 2, self.d))
+        out[:, EXERCISE] = 0.0
+        self._hat(s, out[:, HOLD])
         return out
 
     def payoff(self, prices) -> np.ndarray:
@@ -178,9 +198,7 @@ class AmericanPutOption:
             out = np.empty(n, dtype=np.int64)
             for start in range(0, n, _CHUNK):  # bounded memory for long price grids
                 part = prices[start : start + _CHUNK]
-                out[start : start + _CHUNK] = policy.act(
-                    self.phi_all(part), h, self.known_values(part)
-                )
+                out[start : start + _CHUNK] = self._greedy(policy, h, part)
             return out
         if callable(policy):
             out = np.asarray(policy(h, prices))
@@ -202,6 +220,19 @@ class AmericanPutOption:
             "a put-option policy is a fitted estimator, a vectorized callable "
             f"policy(h, prices) -> actions or 'hold'/'exercise'/'uniform'; got {policy!r}"
         )
+
+    def _greedy(self, est, h: int, prices: np.ndarray) -> np.ndarray:
+        """``argmax_a Q_h(s, a)`` of a fitted estimator, ties to hold: exercise exactly when
+        its known value, the payoff, exceeds ``Q_h(s, hold)``.
+
+        Only the hold action's Q is computed (exercise has zero features and a known value),
+        half the work of ``est.act(phi_all, h, known_values)``, with the same decisions. An
+        ended state (NaN price) has the known value 0 for both actions: it holds.
+        """
+        q_hold = est.q_values(self.features(prices)[:, None, :], h)[:, 0]
+        with np.errstate(invalid="ignore"):  # NaN prices compare False: they hold
+            exercise = np.maximum(0.0, self.strike - prices) > q_hold
+        return exercise.astype(np.int64)
 
     def _check_estimator(self, est) -> None:
         horizon = getattr(est, "horizon_", None)

@@ -15,6 +15,7 @@ re-derived here: the code that learns and the code that evaluates share the form
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 
 import numpy as np
@@ -51,6 +52,27 @@ def _check_finite_env(env, func: str) -> FiniteLinearMDP:
     return env
 
 
+# Per environment (held weakly; its factors, features and rewards never change): the exact
+# expectation operators of its steps and its optimal robust-regularized values, which
+# suboptimality gaps, optimal policies and the uncertainty term all start from.
+_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _env_cache(env) -> dict:
+    try:
+        return _CACHE.setdefault(env, {})
+    except TypeError:  # not weakly referable or not hashable: no cache
+        return {}
+
+
+def _expectations(env: FiniteLinearMDP) -> list[FactorExpectation]:
+    """``FactorExpectation(mu_h)`` for every step (built and validated once per env)."""
+    cache = _env_cache(env)
+    if "E" not in cache:
+        cache["E"] = [FactorExpectation(env.mu[h]) for h in range(env.horizon)]
+    return cache["E"]
+
+
 def finite_backward(env: FiniteLinearMDP, step: StepWeights, policy=None, rewards=None
                     ) -> tuple[np.ndarray, np.ndarray]:
     """``(Q (H, S, A), V (H+1, S))`` of the backward induction with weights ``step(h, E, v)``.
@@ -65,8 +87,9 @@ def finite_backward(env: FiniteLinearMDP, step: StepWeights, policy=None, reward
     rewards = env.reward_table if rewards is None else rewards
     Q = np.empty((H, S, A))
     V = np.zeros((H + 1, S))
+    operators = _expectations(env)
     for h in range(H - 1, -1, -1):
-        w = np.asarray(step(h, FactorExpectation(env.mu[h]), V[h + 1]), dtype=float)
+        w = np.asarray(step(h, operators[h], V[h + 1]), dtype=float)
         Q[h] = rewards[h] + env.features(h) @ w
         V[h] = Q[h].max(axis=1) if pi is None else np.einsum("sa,sa->s", pi[h], Q[h])
     return Q, V
@@ -142,7 +165,17 @@ def robust_values(env, divergence, lam, policy=None) -> tuple[np.ndarray, np.nda
     ((4, 5), 0.29985)
     """
     env = _check_finite_env(env, "robust_values")
-    return finite_backward(env, regularized_step(divergence, lam), policy)
+    step = regularized_step(divergence, lam)
+    div = resolve_divergence(divergence)
+    if policy is not None or not any(div is d for d in (TV, KL, CHI2)):
+        return finite_backward(env, step, policy)
+    # The optimal values are computed once per (env, divergence, lam) and copied out.
+    cache = _env_cache(env)
+    key = ("robust", div.name, float(lam))
+    if key not in cache:
+        cache[key] = finite_backward(env, step)
+    Q, V = cache[key]
+    return Q.copy(), V.copy()
 
 
 def constrained_values(env, divergence, rho, policy=None) -> tuple[np.ndarray, np.ndarray]:

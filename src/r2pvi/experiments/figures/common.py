@@ -23,6 +23,8 @@ class Figure:
     ``tasks(settings) -> list[Task]``; ``plot(rows, settings) -> matplotlib figure``;
     ``table(rows, settings) -> str``. ``serial`` figures (timings) always run in one process.
     ``quantity`` and ``unit`` say what the rows' ``value`` column holds (written to the CSV).
+    ``plot_cost`` is the time to draw and save the plot relative to a simple one (the order
+    in which ``r2pvi reproduce all`` hands plots to its processes).
     """
 
     name: str
@@ -35,6 +37,7 @@ class Figure:
     notes: list[str] = field(default_factory=list)
     quantity: str = "average return"
     unit: str = "return"
+    plot_cost: float = 1.0
 
 
 ALGORITHM_KINDS = ("PEVI", "R2PVI", "DRPVI", "DRVI-L", "VA-DRPVI", "VA-R2PVI-TV")
