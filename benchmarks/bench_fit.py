@@ -59,6 +59,16 @@ def floor_fit(ds, gamma=1.0, package=None):
             ridge(phi, gram(phi, gamma))(rewards)
 
 
+def forget_grams(ds):
+    """The dataset without the Gram matrices an earlier fit left in its cache (r2pvi keeps
+    them for repeated fits on the same data): every timed fit forms its own, as a single fit
+    does, so that it is compared with a floor that forms them too."""
+    grams = getattr(getattr(ds, "_source", None), "_grams", None)
+    if grams is not None:
+        grams[:] = [None] * len(grams)
+    return ds
+
+
 def import_baseline(src: str):
     """Another version's ``r2pvi`` package (``src/r2pvi``) imported as ``r2pvi_baseline``
     (its imports are relative, so a renamed copy is a separate package)."""
@@ -125,7 +135,7 @@ def main(argv=None):
         fns[label + "floor"] = lambda ds=ds, package=package: floor_fit(ds, package=package)
         for name, est in estimators(theta, package).items():
             if not args.only or name in args.only or name == "R2PVI-TV":
-                fns[label + name] = lambda est=est, ds=ds: est.fit(ds)
+                fns[label + name] = lambda est=est, ds=ds: est.fit(forget_grams(ds))
     med = interleaved_medians(fns, args.repeats)
     print(f"K={args.K} d={args.d} H={args.H} A=2; median of {args.repeats} interleaved rounds")
     for label in versions:
