@@ -31,9 +31,9 @@ from .data import OfflineDataset
 from .duals._scratch import release
 from .duals.operators import (
     GramFactor,
-    GramMatrixError,
     RidgeExpectation,
     choose_form,
+    ridge_cholesky,
 )
 from .sparse import StackedSparse, stack_rows
 
@@ -375,16 +375,7 @@ class ChunkedRidgeExpectation(RidgeExpectation):
 
 def _primal_factor(gram, gamma, weights, shape) -> GramFactor:
     """The primal factor of ``gram + gamma I`` (``gram`` is modified)."""
-    gram[np.diag_indices_from(gram)] += gamma
-    try:
-        chol = np.linalg.cholesky(gram)
-    except np.linalg.LinAlgError:
-        raise GramMatrixError(
-            f"the Gram matrix Lambda = Phi^T Phi + gamma I is not numerically positive "
-            f"definite: gamma = {gamma!r} is too small for these collinear (rank-deficient) "
-            "features; use a larger gamma (the default is 1.0)"
-        ) from None
-    return GramFactor.from_cholesky(_Rows(shape), chol, weights, gamma)
+    return GramFactor.from_cholesky(_Rows(shape), ridge_cholesky(gram, gamma), weights, gamma)
 
 
 def _streams(source, form: str, time_homogeneous: bool) -> bool:

@@ -234,6 +234,12 @@ def cholesky_gram(phi: np.ndarray, gamma: float, weights: np.ndarray | None = No
     else:
         xw = phi if weights is None else phi * weights[:, None]
         gram = xw.T @ phi
+    return ridge_cholesky(gram, gamma)
+
+
+def ridge_cholesky(gram: np.ndarray, gamma: float) -> np.ndarray:
+    """Lower Cholesky factor of ``gram + gamma I`` (``gram`` is modified), or a
+    :class:`GramMatrixError` naming ``gamma`` when it does not exist."""
     gram[np.diag_indices_from(gram)] += gamma
     try:
         return np.linalg.cholesky(gram)
