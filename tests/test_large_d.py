@@ -313,6 +313,27 @@ def test_elliptical_factors_save_load_and_old_format(tmp_path):
                 np.testing.assert_array_equal(back.q_values(feat, h), est.q_values(feat, h))
 
 
+def test_elliptical_models_with_mixed_factor_kinds_save_and_load(tmp_path):
+    """Sparse rows whose steps take different forms (dual where the rows use more features
+    than there are rows, the used-feature primal on steps without data) save and load."""
+    from r2pvi.features import TileCoding, cross_actions
+
+    rng = np.random.default_rng(19)
+    eps = [{"observations": rng.random((3, 2)), "actions": [0, 1], "rewards": [1.0, 0.5],
+            "terminations": [False, True], "truncations": [False, False]} for _ in range(4)]
+    obs = np.concatenate([e["observations"] for e in eps])
+    fmap = cross_actions(TileCoding(n_tilings=2, n_tiles=3, sparse=True).fit(obs), 2)
+    ds = OfflineDataset.from_episodes(eps, fmap, 2, horizon=4)  # steps 2-3: no data
+    est = PEVI(beta=0.1).fit(ds)
+    path = est.save(tmp_path / "mixed")
+    with np.load(path, allow_pickle=False) as npz:
+        assert {"elliptical_cinv", "elliptical_sizes"} <= set(npz.files)
+    back = load(path)
+    feat = fmap.all_actions(rng.random((5, 2)))
+    for h in range(4):
+        np.testing.assert_array_equal(back.q_values(feat, h), est.q_values(feat, h))
+
+
 def test_tampered_sparse_elliptical_factors_are_named(tmp_path):
     _, sparse = _both(*_data(np.random.default_rng(17), 10, 2, 30))
     good = PEVI(beta=0.3).fit(sparse).save(tmp_path / "good")
@@ -324,7 +345,9 @@ def test_tampered_sparse_elliptical_factors_are_named(tmp_path):
         ("elliptical_psi_indptr", lambda a, m: a.update(elliptical_psi_indptr=ptr[:, ::-1].copy())),
         ("elliptical_psi_indptr", lambda a, m: a.update(elliptical_psi_indptr=ptr.astype(float))),
         ("elliptical_cinv", lambda a, m: a.update(elliptical_cinv=np.ones((2, 3, 4)))),
-        ("elliptical_storage", lambda a, m: m.update(elliptical_storage="csc"))))
+        ("elliptical_kinds", lambda a, m: m.update(elliptical_kinds=["csc"] * 2)),
+        # sparse factors declared dense: the dense arrays they would need are missing
+        ("elliptical_r", lambda a, m: m.update(elliptical_kinds=["dense", "dense"]))))
     rng = np.random.default_rng(18)
     phi, rewards, next_phi = _data(rng, 30, 2, 8)
     phi[..., 3] = next_phi[..., 3] = 0.0  # an unused feature (rows renormalized)
@@ -351,11 +374,11 @@ def _assert_tampering_is_named(good, tmp_path, changes):
     with np.load(good, allow_pickle=False) as npz:
         arrays = {k: npz[k] for k in npz.files}
     meta = json.loads(str(arrays.pop("__r2pvi_meta__")))
-    for field, change in changes:
+    for i, (field, change) in enumerate(changes):
         a, m = dict(arrays), json.loads(json.dumps(meta))
         change(a, m)
         kind, version = m.pop("kind"), m.pop("format_version")
-        bad = save_npz(tmp_path / f"{field}.npz", kind, version, a, m)
+        bad = save_npz(tmp_path / f"bad{i}.npz", kind, version, a, m)  # not named after field
         with pytest.raises(ValueError, match=field):
             load(bad)
 

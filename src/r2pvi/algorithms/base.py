@@ -26,13 +26,12 @@ __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
 # Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
 # ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
 # the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
-# Version 3: elliptical factors of sparse-feature fits, ``R = C^{-1} Psi`` kept as its two
-# factors: ``elliptical_cinv`` (G, n, n) and ``Psi`` in CSR pieces (``elliptical_psi_data``,
-# ``elliptical_psi_indices``, ``elliptical_psi_indptr`` (G, n + 1)), header
-# ``elliptical_storage = "sparse"``; or, for the primal form on the used features of sparse
-# rows, ``L_U^{-1}`` and ``U`` ragged by factor (``elliptical_linv_data``, ``elliptical_cols``,
-# ``elliptical_sizes`` (G,)), header ``elliptical_storage = "used"``. Dense fits still write
-# version-2 content.
+# Version 3: header ``elliptical_kinds`` (one of "dense", "sparse", "used" per distinct factor)
+# and, by kind: dense ``elliptical_r``; sparse-row dual factors ``R = C^{-1} Psi`` as
+# ``elliptical_cinv`` (Gs, n, n) and Psi's CSR pieces (``elliptical_psi_data``,
+# ``elliptical_psi_indices``, ``elliptical_psi_indptr`` (Gs, n + 1)); sparse-row primal factors
+# ``L_U^{-1}`` on the used features U, ragged (``elliptical_linv_data``, ``elliptical_cols``,
+# ``elliptical_sizes`` (Gu,)). Version-2 files (dense only, no kinds) still load.
 MODEL_FORMAT_VERSION = 3
 ESTIMATOR_REGISTRY: dict[str, type] = {}
 
@@ -265,11 +264,10 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             "n_actions": self.n_actions_,
         }
         if getattr(self, "_elliptical", None) is not None:
-            index, packed, storage = _pack_elliptical(self._elliptical)
+            index, packed, kinds = _pack_elliptical(self._elliptical)
             arrays.update(packed)
             meta["elliptical_index"] = index
-            if storage != "dense":
-                meta["elliptical_storage"] = storage
+            meta["elliptical_kinds"] = kinds
         return save_npz(path, "estimator", MODEL_FORMAT_VERSION, arrays, meta)
 
     @classmethod
@@ -409,42 +407,53 @@ def _load_elliptical(path, arrays, header, H: int, d: int, needed: bool):
         return [(np.linalg.solve(c, np.eye(d)), 0.0, 1.0) for c in chol]
     if not needed:
         return None
-    storage = header.get("elliptical_storage", "dense")
-    if storage == "sparse":
-        return _load_sparse_elliptical(path, arrays, header, H, d)
-    if storage == "used":
-        return _load_used_elliptical(path, arrays, header, H, d)
-    if storage != "dense":
-        raise file_error(path, "elliptical_storage", f"must be 'dense', 'sparse' or 'used', "
-                         f"got {storage!r}")
-    rs = file_array(path, arrays, "elliptical_r", ndim=3)
-    if rs.shape[0] < 1 or rs.shape[2] != d:
-        raise file_error(path, "elliptical_r", f"must have shape (G >= 1, r, d = {d}), "
-                         f"got {rs.shape}")
-    cs, index = _elliptical_constants(path, arrays, header, H, rs.shape[0])
-    return [(rs[g], float(cs[g, 0]), float(cs[g, 1])) for g in index]
-
-
-def _elliptical_constants(path, arrays, header, H: int, G: int):
-    """``elliptical_c (G, 2)`` and the step -> factor ``elliptical_index`` of a model file."""
-    cs = file_array(path, arrays, "elliptical_c", shape=(G, 2))
     index = header.get("elliptical_index")
+    kinds = header.get("elliptical_kinds")
+    if kinds is None:  # version 2: dense factors only
+        rs = file_array(path, arrays, "elliptical_r", ndim=3)
+        kinds = ["dense"] * rs.shape[0]
+    if (not isinstance(kinds, list) or not kinds
+            or any(k not in _ELLIPTICAL_KINDS for k in kinds)):
+        raise file_error(path, "elliptical_kinds", f"must be a non-empty list of "
+                         f"{_ELLIPTICAL_KINDS}, got {kinds!r}")
+    G = len(kinds)
+    cs = file_array(path, arrays, "elliptical_c", shape=(G, 2))
     if (not isinstance(index, list) or len(index) != H
             or not all(isinstance(g, int) and not isinstance(g, bool) and 0 <= g < G
                        for g in index)):
         raise file_error(path, "elliptical_index",
                          f"must be a list of H = {H} integers in [0, {G})")
-    return cs, index
+    kinds_arr = np.array(kinds)
+    factors: list = [None] * G
+    for kind, load in (("dense", _load_dense_factors), ("sparse", _load_sparse_factors),
+                       ("used", _load_used_factors)):
+        mine = np.flatnonzero(kinds_arr == kind)
+        if mine.size:
+            for g, f in zip(mine, load(path, arrays, d, mine.size, cs[mine]), strict=True):
+                factors[g] = f
+    return [(factors[g], float(cs[g, 0]), float(cs[g, 1])) if kinds[g] != "used"
+            else (factors[g], 0.0, 1.0) for g in index]
 
 
-def _load_sparse_elliptical(path, arrays, header, H: int, d: int):
-    """Version 3's sparse factors ``R = C^{-1} Psi``: ``C^{-1}`` dense, ``Psi`` as CSR pieces."""
+_ELLIPTICAL_KINDS = ("dense", "sparse", "used")
+
+
+def _load_dense_factors(path, arrays, d: int, count: int, cs):
+    rs = file_array(path, arrays, "elliptical_r", ndim=3)
+    if rs.shape[0] != count or rs.shape[2] != d:
+        raise file_error(path, "elliptical_r", f"must have shape ({count}, r, d = {d}), "
+                         f"got {rs.shape}")
+    return list(rs)
+
+
+def _load_sparse_factors(path, arrays, d: int, count: int, cs):
+    """Sparse-row dual factors ``R = C^{-1} Psi``: ``C^{-1}`` dense, ``Psi`` as CSR pieces."""
     cinv = file_array(path, arrays, "elliptical_cinv", ndim=3)
-    G, n = cinv.shape[0], cinv.shape[1]
-    if G < 1 or cinv.shape[2] != n:
-        raise file_error(path, "elliptical_cinv", f"must have shape (G >= 1, n, n), got "
+    n = cinv.shape[1]
+    if cinv.shape != (count, n, n):
+        raise file_error(path, "elliptical_cinv", f"must have shape ({count}, n, n), got "
                          f"{cinv.shape}")
-    indptr = _int_array(path, arrays, "elliptical_psi_indptr", (G, n + 1))
+    indptr = _int_array(path, arrays, "elliptical_psi_indptr", (count, n + 1))
     data = file_array(path, arrays, "elliptical_psi_data", ndim=1)
     indices = _int_array(path, arrays, "elliptical_psi_indices", data.shape)
     counts = indptr[:, -1]
@@ -454,37 +463,37 @@ def _load_sparse_elliptical(path, arrays, header, H: int, d: int):
                          "at 0, non-decreasing) whose totals add up to the stored non-zeros")
     if indices.size and (indices.min() < 0 or indices.max() >= d):
         raise file_error(path, "elliptical_psi_indices", f"must lie in [0, d = {d})")
-    cs, index = _elliptical_constants(path, arrays, header, H, G)
     starts = np.concatenate([[0], np.cumsum(counts)])
-    factors = []
-    for g in range(G):
-        s, e = starts[g], starts[g + 1]
-        psi = sp.csr_matrix((data[s:e], indices[s:e], indptr[g]), shape=(n, d))
-        factors.append(_SparseProduct(cinv[g], psi))
-    return [(factors[g], float(cs[g, 0]), float(cs[g, 1])) for g in index]
+    return [_SparseProduct(cinv[g], sp.csr_matrix(
+        (data[starts[g]:starts[g + 1]], indices[starts[g]:starts[g + 1]], indptr[g]),
+        shape=(n, d))) for g in range(count)]
 
 
-def _load_used_elliptical(path, arrays, header, H: int, d: int):
-    """Version 3's used-feature factors ``L_U^{-1}`` (ragged by factor) and their features."""
-    sizes = _int_array(path, arrays, "elliptical_sizes", None)
-    if sizes.ndim != 1 or sizes.size < 1 or np.any(sizes < 1) or np.any(sizes > d):
-        raise file_error(path, "elliptical_sizes", f"must be G >= 1 sizes in [1, d = {d}]")
-    cols = _int_array(path, arrays, "elliptical_cols", (int(sizes.sum()),))
-    linv = file_array(path, arrays, "elliptical_linv_data", shape=(int((sizes**2).sum()),))
-    G = sizes.size
-    cs, index = _elliptical_constants(path, arrays, header, H, G)
+def _load_used_factors(path, arrays, d: int, count: int, cs):
+    """Sparse-row primal factors ``L_U^{-1}`` on the used features ``U`` (ragged)."""
+    sizes = _int_array(path, arrays, "elliptical_sizes", (count,))
+    if np.any(sizes < 0) or np.any(sizes > d):
+        raise file_error(path, "elliptical_sizes", f"must be {count} sizes in [0, d = {d}]")
+    cols = _int_array(path, arrays, "elliptical_cols", None)
+    linv = file_array(path, arrays, "elliptical_linv_data", ndim=1)
+    if cols.shape != (int(sizes.sum()),):
+        raise file_error(path, "elliptical_sizes", f"{sizes.tolist()} do not add up to the "
+                         f"{cols.size} stored features (elliptical_cols)")
+    if linv.shape != (int((sizes**2).sum()),):
+        raise file_error(path, "elliptical_linv_data", f"must hold sum(sizes^2) = "
+                         f"{int((sizes**2).sum())} entries, got {linv.size}")
     if np.any(cs[:, 0] <= 0):
         raise file_error(path, "elliptical_c", "must hold 1 / gamma > 0 in its first column")
     ends, sq_ends = np.cumsum(sizes), np.cumsum(sizes**2)
     factors = []
-    for g in range(G):
+    for g in range(count):
         u = int(sizes[g])
         c = cols[ends[g] - u:ends[g]]
         if np.any(c < 0) or np.any(c >= d) or np.any(np.diff(c) <= 0):
             raise file_error(path, "elliptical_cols", f"must be increasing features in [0, {d})")
         lg = linv[sq_ends[g] - u * u:sq_ends[g]].reshape(u, u)
         factors.append(_UsedFeaturesFactor(lg, c, 1.0 / float(cs[g, 0])))
-    return [(factors[g], 0.0, 1.0) for g in index]
+    return factors
 
 
 def _int_array(path, arrays: dict, name: str, shape: tuple | None) -> np.ndarray:
@@ -498,39 +507,53 @@ def _int_array(path, arrays: dict, name: str, shape: tuple | None) -> np.ndarray
     return arr.astype(np.int64)
 
 
-def _pack_elliptical(factors: list) -> tuple[list[int], dict, str]:
-    """Distinct per-step elliptical factors as arrays: ``(index (H,), arrays, storage)``
-    with ``elliptical_r (G, r, d)`` (dense) or the sparse factors' pieces, and
-    ``elliptical_c (G, 2)`` (pooled steps share one factor: G = 1)."""
-    seen: dict[int, int] = {}
-    index, rs, cs = [], [], []
-    for r, c0, c1 in factors:
-        key = id(r)
-        if key not in seen:
-            seen[key] = len(rs)
-            rs.append(r)
-            cs.append((c0, c1))
-        index.append(seen[key])
-    arrays = {"elliptical_c": np.asarray(cs, dtype=float)}
-    if all(isinstance(r, np.ndarray) for r in rs):
-        arrays["elliptical_r"] = np.stack(rs)
-        return index, arrays, "dense"
-    if all(isinstance(r, _UsedFeaturesFactor) for r in rs):
-        # c0 = 0, c1 = 1 for these; the first constant column carries 1 / gamma instead.
-        arrays["elliptical_c"] = np.array([[1.0 / r.gamma, 1.0] for r in rs])
-        arrays["elliptical_sizes"] = np.array([r.cols.size for r in rs], dtype=np.int64)
-        arrays["elliptical_cols"] = np.concatenate([r.cols for r in rs]).astype(np.int64)
-        arrays["elliptical_linv_data"] = np.concatenate([r.linv.ravel() for r in rs])
-        return index, arrays, "used"
-    if not all(isinstance(r, _SparseProduct) for r in rs) or len(
-            {r.cinv.shape for r in rs}) != 1:
-        raise TypeError("cannot save elliptical factors that mix dense and sparse forms or "
-                        "sizes; use penalty='l1' or 'l2'")
-    psis = [r.psi for r in rs]
-    arrays["elliptical_cinv"] = np.stack([r.cinv for r in rs])
-    arrays["elliptical_psi_data"] = np.concatenate([p.data for p in psis]).astype(float)
-    arrays["elliptical_psi_indices"] = np.concatenate([p.indices for p in psis]).astype(
-        np.int64)
-    arrays["elliptical_psi_indptr"] = np.stack([p.indptr for p in psis]).astype(np.int64)
-    return index, arrays, "sparse"
+def _pack_elliptical(factors: list) -> tuple[list[int], dict, list[str]]:
+    """Distinct per-step elliptical factors as arrays: ``(index (H,), arrays, kinds (G,))``.
 
+    ``elliptical_c (G, 2)`` for every factor; by kind, in the order of ``kinds``: "dense"
+    ``elliptical_r``, "sparse" (sparse-row dual form) ``elliptical_cinv`` and ``Psi``'s CSR
+    pieces, "used" (sparse-row primal form) ``L_U^{-1}`` and ``U``, ragged. Pooled steps share
+    one factor (G = 1); sparse rows may mix the two sparse kinds across steps."""
+    seen: dict[int, int] = {}
+    index, distinct = [], []
+    for factor in factors:
+        key = id(factor[0])
+        if key not in seen:
+            seen[key] = len(distinct)
+            distinct.append(factor)
+        index.append(seen[key])
+    kinds = []
+    for r, _, _ in distinct:
+        if isinstance(r, np.ndarray):
+            kinds.append("dense")
+        elif isinstance(r, _SparseProduct):
+            kinds.append("sparse")
+        elif isinstance(r, _UsedFeaturesFactor):
+            kinds.append("used")
+        else:  # pragma: no cover - the engine makes only these
+            raise TypeError(f"cannot save an elliptical factor of type {type(r).__name__}")
+    # "used" factors have c0 = 0, c1 = 1; their first column carries 1 / gamma instead.
+    arrays = {"elliptical_c": np.array([[1.0 / r.gamma, 1.0] if k == "used" else [c0, c1]
+                                        for (r, c0, c1), k in zip(distinct, kinds,
+                                                                  strict=True)])}
+    of = {k: [r for (r, _, _), kk in zip(distinct, kinds, strict=True) if kk == k]
+          for k in _ELLIPTICAL_KINDS}
+    if of["dense"]:
+        if len({r.shape for r in of["dense"]}) != 1:
+            raise TypeError("cannot save dense elliptical factors of different shapes")
+        arrays["elliptical_r"] = np.stack(of["dense"])
+    if of["sparse"]:
+        if len({r.cinv.shape for r in of["sparse"]}) != 1:
+            raise TypeError("cannot save sparse elliptical factors of different sizes")
+        psis = [r.psi for r in of["sparse"]]
+        arrays["elliptical_cinv"] = np.stack([r.cinv for r in of["sparse"]])
+        arrays["elliptical_psi_data"] = np.concatenate([p.data for p in psis]).astype(float)
+        arrays["elliptical_psi_indices"] = np.concatenate(
+            [p.indices for p in psis]).astype(np.int64)
+        arrays["elliptical_psi_indptr"] = np.stack([p.indptr for p in psis]).astype(np.int64)
+    if of["used"]:
+        used = of["used"]
+        arrays["elliptical_sizes"] = np.array([r.cols.size for r in used], dtype=np.int64)
+        arrays["elliptical_cols"] = np.concatenate([r.cols for r in used]).astype(np.int64)
+        arrays["elliptical_linv_data"] = np.concatenate([r.linv.ravel() for r in used])
+    return index, arrays, kinds
