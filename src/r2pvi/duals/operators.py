@@ -516,7 +516,7 @@ class GramFactor:
         """Indices of the features some row uses (sparse rows), None for dense rows."""
         if not self.sparse:
             return None
-        return np.unique(self.phi.indices)
+        return self.cols  # found once, when the factor was formed
 
     def restrict(self, cols: np.ndarray) -> GramFactor:
         """The factor of the features ``cols`` alone, for a dual-form factor whose other
@@ -526,16 +526,16 @@ class GramFactor:
             raise ValueError("restrict needs the dual form or sparse rows")
         new = copy.copy(self)
         new._used_rows = None
-        if self.form == "primal":  # the used features keep their factor, in their order
+        new.phi, new.d = self.phi[:, cols], len(cols)
+        if self.cols is not None:  # the used features, renumbered (they keep their order)
             where = np.full(self.d, -1)
             where[np.asarray(cols)] = np.arange(len(cols))
             pos = where[self.cols]
             if np.any(pos < 0) or np.any(np.diff(pos) <= 0):
                 raise ValueError("restrict: cols must hold every used feature, in order")
-            new.phi, new.d, new.cols = self.phi[:, cols], len(cols), pos
+            new.cols = pos
+        if self.form == "primal":  # the used features keep their factor
             return new
-        new.phi = self.phi[:, cols]
-        new.d = len(cols)
         new._psi = None
         new._u = None if self._u is None else self._u[:, cols]
         new._z = None if getattr(self, "_z", None) is None else self._z[:, cols]
