@@ -11,30 +11,18 @@ true factors at the learned ``V_{h+1}`` of every state.
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
 from r2pvi.algorithms import KLBallRule
 from r2pvi.duals import FactorExpectation, kl_constrained
 from r2pvi.engine import backward_induction
-from r2pvi.envs import FiniteLinearMDP
 
-
-def issue_mdp(seed=0, H=3):
-    rng = np.random.default_rng(seed)
-    S, A, d = 6, 2, 4
-    phi = rng.dirichlet(np.ones(d), size=(S, A))
-    phi[5] = np.eye(d)[3]
-    mu = np.zeros((H, d, S))
-    for h in range(H):
-        mu[h, 0, :5] = rng.dirichlet(np.ones(5))
-        mu[h, 1] = rng.dirichlet(np.ones(S))
-        mu[h, 2] = rng.dirichlet(np.ones(S))
-        mu[h, 3] = np.eye(S)[5]
-    theta = rng.uniform(0.0, 0.1, size=(H, d))
-    theta[:, 3] = 0.0
-    return FiniteLinearMDP(phi, theta, mu, initial=np.r_[np.full(5, 0.2), 0.0],
-                           fail_states=(5,))
+# The issue's MDP is defined once, with the regression tests that use it.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from test_guarantees_constrained import issue_mdp  # noqa: E402
 
 
 class Spy(KLBallRule):
