@@ -255,6 +255,8 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         self.buffers = {} if buffers is None else buffers
         self._factor = None
         self._rows = None
+        self._sums = None  # Phi^T W 1 (d,), accumulated with Lambda (E(1) = Lambda^-1 of it)
+        self._want_sums = False
         self._pending: list[np.ndarray] = []
         self._done: list[tuple[np.ndarray, np.ndarray]] = []
         self.passes = 0  # reads of the step's features (a diagnostic)
@@ -294,6 +296,28 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         self.phi  # noqa: B018 - explicit rows need the step's features in memory
         return super().rows(dims)
 
+    def total_weights(self) -> np.ndarray:
+        """``E(1) = Lambda^{-1} Phi^T W 1`` from the column sums ``Phi^T W 1``, which ride along
+        with ``Lambda`` (stored with the data, or kept from an earlier pass): a ``d x d``
+        solve; a pass of its own only when neither is known."""
+        if getattr(self, "_total", None) is None:
+            if self._sums is None and self.weights is None:
+                self._sums = self.source.phi_sums(self.h)
+            if self._sums is None:
+                if self._rows is not None:
+                    return super().total_weights()
+                self._want_sums = True
+                self._pass(None)
+            self._total = self._solve_sums(self._sums)
+        return self._total.copy()
+
+    def with_total_weights(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(E(y), E(1))`` in one read of the step's features (none for ``E(1)`` when the
+        column sums are known)."""
+        if self._rows is None:
+            self._want_sums = True  # accumulated with E(y) if not known
+        return self(y), self.total_weights()
+
     def include(self, y: np.ndarray) -> None:
         """Register ``y (n,)`` or ``(n, m)``: its product ``Phi^T W y`` is accumulated with
         the next pass, and ``E(y)`` (the same array object) then costs no read."""
@@ -328,8 +352,13 @@ class ChunkedRidgeExpectation(RidgeExpectation):
             known = self.source.gram(self.h)  # stored with the data, or from an earlier fit
             if known is not None:
                 self._factor = _primal_factor(known, self.gamma, None, (self.n_points, d))
+        if self._sums is None and self.weights is None:
+            self._sums = self.source.phi_sums(self.h)
+        # Phi^T W 1 rides along with Lambda (nearly free: the chunk is in cache), or when asked
+        sums = None if self._sums is not None or not (
+            self._factor is None or self._want_sums) else np.zeros(d)
         cols = ([] if y is None else [y]) + self._pending
-        if not cols and self._factor is not None:
+        if not cols and self._factor is not None and sums is None:
             return None
         cols = [np.asarray(c, dtype=float) for c in cols]
         if self._rows is not None:  # the rows are in memory: no read
@@ -343,10 +372,15 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         gram = np.zeros((d, d)) if self._factor is None else None
         acc = [np.zeros((d,) + c.shape[1:]) for c in cols]
         w = self.weights
+        ones = np.ones(0)
         for s, e, rows in self.source.phi_chunks(self.h):
             if gram is not None:
                 xw = rows if w is None else rows * w[s:e, None]
                 gram += xw.T @ rows  # a symmetric rank-k update when unweighted
+            if sums is not None:
+                if w is None and ones.size < e - s:
+                    ones = np.ones(e - s)
+                sums += (ones[: e - s] if w is None else w[s:e]) @ rows
             for a, c in zip(acc, cols, strict=True):
                 if w is None and c.ndim == 1:
                     a += c[s:e] @ rows
@@ -355,6 +389,10 @@ class ChunkedRidgeExpectation(RidgeExpectation):
                 else:
                     a += rows.T @ (c[s:e].T * w[s:e]).T
         self.passes += 1
+        if sums is not None:
+            self._sums = sums
+            if w is None:
+                self.source.remember_phi_sums(self.h, sums)
         if gram is not None:
             if w is None:
                 self.source.remember_gram(self.h, gram)

@@ -26,6 +26,8 @@ The on-disk format (format version 2) is a directory::
                                        holds the features used for the next states of step h)
     next_values.npy      (H, K, A)     known next-state action values (NaN: learn); optional
     next_table_values.npy (S, A)       known values by next state (table form); optional
+    gram.npy             (H, d, d)     float64 Phi_h^T Phi_h of the stored features; optional
+    phi_sums.npy         (H, d)        float64 Phi_h^T 1 (column sums); optional
     extra_<name>.npy     (K, H, ...)   observed states, actions, next states; optional
 
 Plain ``.npy`` files (no pickle, ``allow_pickle=False`` on every read), described by a JSON
@@ -66,6 +68,7 @@ FORMAT_VERSION = 2
 KIND = "r2pvi.OfflineDataset"
 MANIFEST = "manifest.json"
 GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)
+SUMS_FILE = "phi_sums.npy"  # (H, d) float64 Phi_h^T 1, the column sums (optional)
 # Trajectories per chunk when streaming a step. Small enough that a chunk's float64 buffer
 # stays in a core's cache between the cast and the products (about 1 MB for d = 30, A = 2):
 # at K = 1e6 the next-state pass took 30-40% less CPU than with 8192 rows.
@@ -475,7 +478,8 @@ class StepSource:
     """
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
-                 nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None):
+                 nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
+                 sums=None):
         self.phi, self.rewards, self.next = phi, rewards, nxt
         self.extras = dict(extras or {})
         self.nonnegative_phi = nonnegative_phi
@@ -484,6 +488,8 @@ class StepSource:
         # Phi_h^T Phi_h of every step (float64, no ridge), a cache: stored with the data, or
         # kept from the first fit that formed them (see gram()).
         self._grams = [None] * self.horizon if grams is None else list(grams)
+        # Phi_h^T 1 (column sums; E(1) = Lambda^-1 of them), cached the same way.
+        self._sums = [None] * self.horizon if sums is None else list(sums)
 
     def gram(self, h: int) -> np.ndarray | None:
         """The unweighted ``Phi_h^T Phi_h (d, d)`` of step ``h`` if known (stored with the
@@ -498,6 +504,19 @@ class StepSource:
             g = np.array(gram, dtype=np.float64)
             g.flags.writeable = False
             self._grams[h] = g
+
+    def phi_sums(self, h: int) -> np.ndarray | None:
+        """The column sums ``Phi_h^T 1 (d,)`` of step ``h`` if known (stored with the dataset
+        or formed by an earlier fit), else None. A copy."""
+        c = self._sums[h]
+        return None if c is None else np.array(c, dtype=np.float64)
+
+    def remember_phi_sums(self, h: int, sums: np.ndarray) -> None:
+        """Keep ``Phi_h^T 1`` (formed by a fit) for later fits."""
+        if self._sums[h] is None:
+            c = np.array(sums, dtype=np.float64)
+            c.flags.writeable = False
+            self._sums[h] = c
 
     @property
     def n_actions(self) -> int:
@@ -773,7 +792,15 @@ def open_directory(path, feature_map=None) -> StepSource:
         if grams.shape != (H, d_, d_) or grams.dtype != np.float64:
             raise ValueError(f"{path / files['gram']} must hold (H, d, d) = {(H, d_, d_)} "
                              f"float64 Gram matrices, got {grams.shape} {grams.dtype}")
-    return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams)
+    sums = None
+    if "phi_sums" in files:  # optional (datasets written before it have none)
+        sums = np.load(path / files["phi_sums"], allow_pickle=False)
+        H, d_ = int(mf["horizon"]), int(mf["n_features"])
+        if sums.shape != (H, d_) or sums.dtype != np.float64:
+            raise ValueError(f"{path / files['phi_sums']} must hold (H, d) = {(H, d_)} "
+                             f"float64 column sums, got {sums.shape} {sums.dtype}")
+    return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams,
+                      sums=sums)
 
 
 def _temp_dir(path: Path) -> Path:
@@ -798,11 +825,13 @@ def _finish(tmp: Path, path: Path, manifest: dict, overwrite: bool) -> Path:
     return path
 
 
-def _add_gram(gram: np.ndarray, rows: np.ndarray) -> None:
-    """``gram += X^T X`` for rows ``X (n, d)`` in float64 (by blocks of ``CHUNK`` rows)."""
+def _add_gram(gram: np.ndarray, rows: np.ndarray, sums: np.ndarray) -> None:
+    """``gram += X^T X`` and ``sums += X^T 1`` for rows ``X (n, d)`` in float64 (by blocks of
+    ``CHUNK`` rows)."""
     for s in range(0, rows.shape[0], CHUNK):
         x = np.asarray(rows[s:s + CHUNK], dtype=np.float64)
         gram += x.T @ x
+        sums += np.ones(x.shape[0]) @ x
 
 
 def _write_npy_header(fh, shape, dtype):
@@ -855,15 +884,18 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
             put("actions", source.phi.actions, source.phi.actions.dtype)
         else:  # with the Gram matrices of the stored (rounded) features, as they stream by
             grams = np.zeros((source.horizon, source.n_features, source.n_features))
+            sums = np.zeros((source.horizon, source.n_features))
 
             def gram_of_stored(h, s, e, rows):
                 rows = np.asarray(rows, dtype=store)
-                _add_gram(grams[h], rows)
+                _add_gram(grams[h], rows, sums[h])
                 return rows
 
             put("phi", source.phi, store, gram_of_stored)
             files["gram"] = GRAM_FILE
             np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
+            files["phi_sums"] = SUMS_FILE
+            np.save(tmp / SUMS_FILE, sums, allow_pickle=False)
         put("rewards", source.rewards, np.float64)
         nxt = source.next
         H, K, d = source.phi.shape
@@ -1034,6 +1066,7 @@ class DatasetWriter:
             if any_nv:
                 fields["next_values"] = ((H, K, A), np.float64)
             grams = np.zeros((H, d, d))
+            sums = np.zeros((H, d))
             for name, (shape, dt) in fields.items():
                 shards = [FileField(tmp / f"shard{i:06d}" / f"{name}.npy") if
                           (name != "next_values" or has) else None
@@ -1045,13 +1078,14 @@ class DatasetWriter:
                             rows = (np.full((k, A), np.nan) if f is None else f.read(h))
                             fh.write(np.ascontiguousarray(rows, dtype=dt).tobytes())
                             if name == "phi":
-                                _add_gram(grams[h], rows)
+                                _add_gram(grams[h], rows, sums[h])
                 for f in shards:
                     if f is not None:
                         f.close()
             for i in range(len(self._shards)):
                 shutil.rmtree(tmp / f"shard{i:06d}")
             np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
+            np.save(tmp / SUMS_FILE, sums, allow_pickle=False)
             fl = self._flags
             if self.check_simplex:
                 warn_simplex("phi", fl[0], fl[1], 2)
@@ -1060,7 +1094,8 @@ class DatasetWriter:
                 "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
                 "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
                 "dtype": self.dtype.name, "next": "stored",
-                "files": {**{name: f"{name}.npy" for name in fields}, "gram": GRAM_FILE},
+                "files": {**{name: f"{name}.npy" for name in fields}, "gram": GRAM_FILE,
+                          "phi_sums": SUMS_FILE},
                 "shapes": {name: list(shape) for name, (shape, _) in fields.items()},
                 "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
             }
