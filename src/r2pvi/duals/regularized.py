@@ -110,7 +110,7 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     # (measured 8x the bound at 30 spreads against a 40-digit reference). um is regressed on
     # e^z - 1, or on expm1(z) from lam = 64 spreads on, where every z is near 0 and e^z - 1
     # would carry the absolute rounding error of e^z (where |e^z - 1| >= 1/2 the subtraction
-    # is exact anyway). tests/test_guarantees_regularized.py checks both forms against the
+    # is exact anyway). tests/test_kl_one_regression.py checks both forms against the
     # two-regression one (u and um both regressed) under this bound.
     if lam <= _CENTER_FROM * (upper_v - shift):
         u, s = E.with_total_weights(ex)
