@@ -204,6 +204,18 @@ class _NextValue:
     def __call__(self, feats, known, nonneg):
         return _max_over_actions(_q_step(feats, *self.args, known, nonneg))
 
+    def linear(self, nonneg) -> tuple[np.ndarray, float] | None:
+        """``(u, upper)`` when ``V = clip(max_a phi_a^T u, 0, upper)`` on features with no known
+        values (no penalty, or the "l1" penalty on non-negative features: ``|phi| = phi``), so
+        that a source can compute it as one matrix-vector product per chunk and one clip at the
+        end (the same numbers: ``clip`` is monotone, so it commutes with the max); else None."""
+        weights_h, kind, beta, inv_diag, _, upper = self.args
+        if beta == 0.0:
+            return np.asarray(weights_h, dtype=float), upper
+        if kind == "l1" and nonneg:  # the vector _q_step forms
+            return weights_h + -beta * np.sqrt(inv_diag), upper
+        return None
+
 
 class _Rows:
     """Stands for the ``(K, d)`` rows a streamed factor does not hold (only their shape)."""
@@ -517,8 +529,8 @@ def backward_induction(
                 phi, rewards, next_phi, next_known = pooled
             elif source is None:
                 phi, rewards, next_phi, next_known = dataset.step(h)
-            else:
-                rewards = source.rewards_step(h)  # next-state data: by chunk
+            else:  # next-state data: by chunk; the rewards only when theta is estimated
+                rewards = source.rewards_step(h) if reward_weights is None else None
                 if not chunked:
                     phi = step_buffer = source.phi_step(h, step_buffer)
             sw = None if sample_weights is None else sample_weights[h]
@@ -546,9 +558,9 @@ def backward_induction(
                                   None if ellip is None else ellip[h + 1], (H - h - 1) * r_max)
                 if time_homogeneous or source is None:
                     v_next = qmax(next_phi, next_known, nonneg)
-                else:
-                    v_next = source.next_state_values(h, qmax)
-                next_state_values[h] = v_next
+                    next_state_values[h] = v_next
+                else:  # written in place: no K-sized temporary
+                    v_next = source.next_state_values(h, qmax, out=next_state_values[h])
                 if value_moments:  # only the variance-aware variants need them
                     if chunked:
                         both = np.stack([v_next, v_next * v_next], axis=1)

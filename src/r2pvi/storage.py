@@ -300,13 +300,17 @@ class StoredNext(NextStates):
         return None if self.next_values is None else _as_float64(
             self.next_values.read(h, start, stop))
 
-    def values(self, h, qmax, n, chunk):
+    def values(self, h, qmax, n, chunk, out=None):
         field = self.next_phi
         if isinstance(field, DaskField):
-            return _dask_values(self, h, qmax)
+            v = _dask_values(self, h, qmax)
+            if out is None:
+                return v
+            out[...] = v
+            return out
         # Two reused buffers (a chunk read in the storage type, then cast to float64): no
         # fresh allocation, so no page faults, per chunk.
-        out = np.empty(n)
+        out = np.empty(n) if out is None else out
         shape = (min(chunk, n),) + field.shape[2:]
         if isinstance(field, FileField):
             reads = _prefetched(field, h, n, chunk, shape)
@@ -314,12 +318,35 @@ class StoredNext(NextStates):
             reads = ((s, min(n, s + chunk), field.read(h, s, min(n, s + chunk)))
                      for s in range(0, n, chunk))
         f64 = np.empty(shape)
-        for s, e, rows in reads:
-            if rows.dtype == np.float64 and rows.flags.c_contiguous:
-                feats = rows
-            else:
-                feats = f64[: e - s]
-                np.copyto(feats, rows)
+
+        def float64_rows():
+            for s, e, rows in reads:
+                if not (rows.dtype == np.float64 and rows.flags.c_contiguous):
+                    np.copyto(f64[: e - s], rows)
+                    rows = f64[: e - s]
+                yield s, e, rows
+
+        linear = getattr(qmax, "linear", None)
+        lin = None
+        if linear is not None and self.next_values is None and self.nonnegative is not None:
+            lin = linear(self.nonnegative)
+        if lin is not None:
+            # V = clip(max_a phi_a^T u, 0, upper): one matrix-vector product per chunk into a
+            # reused buffer, the max over actions into the output, one clip at the end.
+            u, upper = lin
+            A, d = field.shape[2], field.shape[3]
+            q = np.empty(shape[0] * A)
+            for s, e, rows in float64_rows():
+                qa = np.matmul(rows.reshape(-1, d), u, out=q[: (e - s) * A]).reshape(e - s, A)
+                if A == 1:
+                    out[s:e] = qa[:, 0]
+                elif A == 2:
+                    np.maximum(qa[:, 0], qa[:, 1], out=out[s:e])
+                else:
+                    np.max(qa, axis=1, out=out[s:e])
+            np.clip(out, 0.0, upper, out=out)
+            return out
+        for s, e, feats in float64_rows():
             nonneg = self.nonnegative
             if nonneg is None:
                 nonneg = bool((feats >= 0).all())
@@ -432,14 +459,17 @@ def _prefetched(field: FileField, h, n, chunk, shape):
     """
     f64 = np.empty(shape)
     raw = f64 if field.dtype == np.float64 else np.empty(shape, field.dtype)
+    view = memoryview(raw.reshape(-1).view(np.uint8))
+    fd, row = field._file(), field._row
+    base = field.offset + h * field.shape[1] * row
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
-        rows = field.read(h, s, e, out=raw[: e - s])
-        if rows.dtype != np.float64:
-            out = f64[: e - s]
-            np.copyto(out, rows)
-            rows = out
-        yield s, e, rows
+        nbytes = (e - s) * row
+        if os.preadv(fd, [view[:nbytes]], base + s * row) != nbytes:
+            field.read(h, s, e, out=raw[: e - s])  # a short read: the careful loop
+        if raw is not f64:
+            np.copyto(f64[: e - s], raw[: e - s])
+        yield s, e, f64[: e - s]
 
 
 def _dask_values(nxt: StoredNext, h, qmax):
@@ -567,9 +597,16 @@ class StepSource:
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
 
-    def next_state_values(self, h: int, qmax) -> np.ndarray:
-        """``V_{h+1}`` at the K sampled next states; ``qmax(feats (n, A, d), known, nonneg)``."""
-        return self.next.values(h, qmax, self.n_trajectories, self.chunk)
+    def next_state_values(self, h: int, qmax, out: np.ndarray | None = None) -> np.ndarray:
+        """``V_{h+1}`` at the K sampled next states; ``qmax(feats (n, A, d), known, nonneg)``;
+        written into ``out (K,)`` when given (returned)."""
+        if out is not None and isinstance(self.next, StoredNext):
+            return self.next.values(h, qmax, self.n_trajectories, self.chunk, out=out)
+        v = self.next.values(h, qmax, self.n_trajectories, self.chunk)
+        if out is None:
+            return v
+        out[...] = v
+        return out
 
     def take(self, idx) -> StepSource:
         extras = {}

@@ -91,11 +91,11 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     v = np.asarray(v, dtype=float)
     shift, upper_v = float(np.min(v)), float(np.max(v))
     upper = upper_v if v_max is None else float(v_max)
-    z = np.subtract(v, shift)
+    z = np.subtract(v, shift)  # one K-sized work array, transformed in place below
     z *= -1.0 / lam
-    with np.errstate(under="ignore"):
-        ex = np.exp(z)
     if form == "paper":
+        with np.errstate(under="ignore"):
+            ex = np.exp(z, out=z)
         log_u = _log_moment(E, v, shift, lam, E(ex))
         return shift - lam * np.maximum(log_u, -(upper - shift) / lam)
     # The moment u = E(e^{-(V-c)/lam}), the row sums s = E(1) and the centered moment
@@ -112,14 +112,19 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     # would carry the absolute rounding error of e^z (where |e^z - 1| >= 1/2 the subtraction
     # is exact anyway). tests/test_kl_one_regression.py checks both forms against the
     # two-regression one (u and um both regressed) under this bound.
-    if lam <= _CENTER_FROM * (upper_v - shift):
-        u, s = E.with_total_weights(ex)
+    # (From 64 spreads on, every z >= -1/64, so e^z > 1/2 and expm1 applies everywhere.)
+    spread = upper_v - shift
+    if lam <= _CENTER_FROM * spread:
+        with np.errstate(under="ignore"):
+            u, s = E.with_total_weights(np.exp(z, out=z))
         um = u - s
     else:
-        um = ex - 1.0
-        if lam > _EXPM1_FROM * (upper_v - shift):
-            np.expm1(z, out=um, where=ex > 0.5)
-        um, s = E.with_total_weights(um)
+        if lam > _EXPM1_FROM * spread:
+            np.expm1(z, out=z)
+        else:
+            np.exp(z, out=z)
+            z -= 1.0
+        um, s = E.with_total_weights(z)
         u = um + s
     if np.all(s > 0.0) and np.all(u >= _TINY):  # the usual case, with d-sized operations only
         # log(u/s) = log1p(um/s): the accurate form when u/s is not small (both are
