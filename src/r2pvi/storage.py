@@ -69,10 +69,12 @@ KIND = "r2pvi.OfflineDataset"
 MANIFEST = "manifest.json"
 GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)
 SUMS_FILE = "phi_sums.npy"  # (H, d) float64 Phi_h^T 1, the column sums (optional)
-# Trajectories per chunk when streaming a step. Small enough that a chunk's float64 buffer
-# stays in a core's cache between the cast and the products (about 1 MB for d = 30, A = 2):
-# at K = 1e6 the next-state pass took 30-40% less CPU than with 8192 rows.
-CHUNK = 1 << 11
+# Trajectories per chunk when streaming a step: about 1 MB (taken actions) and 2 MB (next
+# states, A = 2) of float64 per chunk for d = 30, about one core's L2. Measured at K = 1e6
+# from the page cache (TV and KL fits from disk, min of 3-4 interleaved rounds, shared
+# machine): 4096 rows 8-12% less CPU than 2048 (per-chunk Python and call overhead), 8192
+# no better than 4096.
+CHUNK = 1 << 12
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
 
 
