@@ -660,11 +660,16 @@ class OfflineDataset:
         )
 
     # ------------------------------------------------------------------ I/O
-    def save(self, path, *, dtype=None, overwrite: bool = False) -> Path:
+    def save(self, path, *, dtype=None, overwrite: bool = False,
+             next_form: str = "full") -> Path:
         """Save in the on-disk format: a directory of step-major ``.npy`` files and a JSON
         manifest (format version 2), written in a temporary directory and renamed into
         place. A path ending in ``.npz`` writes the legacy single-file format (version 1).
         Returns the path written. Open it lazily with :meth:`open` (any size).
+
+        ``next_form="behaviour"`` stores the next-state features without each sample's row
+        that equals the next step's taken-action features ``phi[k, h+1]`` (see
+        :class:`~r2pvi.DatasetWriter`); the fits are bitwise the same.
 
         Examples
         --------
@@ -678,10 +683,15 @@ class OfflineDataset:
         (['gram.npy', 'manifest.json', 'next_phi.npy', 'phi.npy', 'rewards.npy'], 2)
         """
         p = Path(os.fspath(path))
+        next_form = _st._next_form(next_form)
         if p.suffix == ".npz":
+            if next_form != "full":
+                raise ValueError("the legacy .npz format stores next_phi whole: use a "
+                                 "directory path for next_form='behaviour'")
             return self._save_npz(p)
         dtype = None if dtype is None else _st._float_dtype(dtype)
-        return _st.write_directory(self._source, p, dtype=dtype, overwrite=overwrite)
+        return _st.write_directory(self._source, p, dtype=dtype, overwrite=overwrite,
+                                   next_form=next_form)
 
     def _save_npz(self, path):
         arrays = {

@@ -51,6 +51,7 @@ __all__ = [
     "FileField",
     "DaskField",
     "StoredNext",
+    "BehaviourNext",
     "TableNext",
     "MapNext",
     "MappedField",
@@ -415,6 +416,216 @@ class MapNext(NextStates):
                        self.n_actions, self.n_features, kv)
 
 
+# --------------------------------------------------------------------------- behaviour form
+NEXT_FORMS = ("full", "behaviour")
+BEHAVIOUR_VERSION = 1  # version of the "behaviour" next-state field set in the manifest
+
+
+def _next_form(next_form) -> str:
+    if next_form not in NEXT_FORMS:
+        raise ValueError(f"next_form must be 'full' or 'behaviour', got {next_form!r}")
+    return next_form
+
+
+def _action_dtype(n_actions: int) -> np.dtype:
+    """The smallest signed integer type holding ``-1 .. A-1``."""
+    for dt in (np.int8, np.int16, np.int32):
+        if n_actions <= np.iinfo(dt).max:
+            return np.dtype(dt)
+    return np.dtype(np.int64)
+
+
+def behaviour_split(following, rows):
+    """Split one step's next-state rows into the behaviour form.
+
+    ``rows (n, A, d)`` are the next-state features of every action of ``n`` samples of step
+    ``h``; ``following (n, d)`` the same samples' taken-action features at step ``h+1``
+    (``phi[:, h+1]``, in the storage type), or None for the last step. Returns
+
+    - ``action (n,)``: the first action ``a`` with ``rows[i, a]`` bitwise equal to
+      ``following[i]`` (that row is then not stored), or -1 where none is (episode ends,
+      padding, independent transitions, NaN rows of known values, the last step);
+    - ``rest (n, A-1, d)``: the rows of every action but ``m_i`` (``m_i = action[i]``, or 0
+      where ``action[i] = -1``), in increasing action order;
+    - ``side (n_side, d)``: ``rows[i, 0]`` of the samples with ``action[i] = -1``, in order.
+
+    Bitwise equality (not ``==``) makes the rebuilt rows the stored ones exactly: ``-0.0`` and
+    ``0.0`` or two NaN payloads are told apart.
+    """
+    n, A, _ = rows.shape
+    if following is None or A == 0:
+        action = np.full(n, -1, dtype=_action_dtype(A))
+    else:
+        u = np.dtype(f"u{rows.dtype.itemsize}")
+        eq = (rows.view(u) == following.view(u)[:, None, :]).all(axis=2)
+        hit = eq.any(axis=1)
+        action = np.where(hit, eq.argmax(axis=1), -1).astype(_action_dtype(A))
+    missing = np.maximum(action, 0)
+    keep = np.ones((n, A), dtype=bool)
+    keep[np.arange(n), missing] = False
+    rest = rows[keep].reshape(n, A - 1, rows.shape[2])
+    side = rows[action < 0, 0]
+    return action, rest, side
+
+
+def _assemble(action, source, rest, out):
+    """``out (n, A, d)`` from the behaviour form: ``out[i, m_i] = source[i]`` and the other
+    actions' rows from ``rest[i]`` in increasing action order (``m_i = max(action[i], 0)``).
+    Writes into ``out`` (any float type: the copies cast)."""
+    A = out.shape[1]
+    missing = np.maximum(action, 0)
+    for a in range(A):
+        dst = out[:, a]
+        if a < A - 1:
+            np.copyto(dst, rest[:, a])  # right where a < m_i
+        if a > 0:
+            np.copyto(dst, rest[:, a - 1], where=(missing < a)[:, None])
+        np.copyto(dst, source, where=(missing == a)[:, None])
+    return out
+
+
+class RowFile:
+    """Rows ``(n, ...)`` of a ``.npy`` file read by range with ``pread`` (the side table)."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        with open(self.path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0)
+            shape, fortran, dtype = read(fh)
+            self.offset = fh.tell()
+        if fortran or dtype.hasobject or len(shape) < 1:
+            raise ValueError(f"{self.path} is not a C-ordered numeric .npy file")
+        self.shape, self.dtype = tuple(shape), np.dtype(dtype)
+        self._row = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
+        size = self.offset + self.shape[0] * self._row
+        if os.path.getsize(self.path) < size:
+            raise ValueError(f"{self.path} is truncated: expected {size} bytes")
+
+    def read(self, start, stop):
+        out = np.empty((stop - start,) + self.shape[1:], dtype=self.dtype)
+        if out.nbytes:
+            with open(self.path, "rb") as fh:
+                fh.seek(self.offset + start * self._row)
+                if fh.readinto(memoryview(out.reshape(-1).view(np.uint8))) != out.nbytes:
+                    raise OSError(f"unexpected end of {self.path}")
+        return out
+
+
+class BehaviourNext(NextStates):
+    """Next-state features stored without the behaviour action's row: ``phi[:, h+1]``.
+
+    For sample ``(k, h)`` the trajectory's next taken action ``a = action[h, k]`` has the
+    next-state features ``next_phi[k, h, a] = phi[k, h+1]`` (bitwise, as stored), so only the
+    other ``A - 1`` rows are stored (``rest (H, K, A-1, d)``). Where the identity breaks
+    (``action = -1``: episode ends, padding, independent transitions, rows of known values,
+    the last step) the missing row (action 0's) is in a side table: ``side (n_side, d)``,
+    step by step and in trajectory order within a step, ``offsets (H+1,)`` its step bounds.
+    :meth:`features` rebuilds exactly the rows of the full form.
+
+    ``phi`` is the dataset's taken-action field (read at step ``h+1``); ``side`` is an array
+    or a :class:`RowFile`.
+    """
+
+    def __init__(self, action: Field, rest: Field, phi: Field, side, offsets,
+                 next_values: Field | None = None, nonnegative=None):
+        self.action, self.rest, self.phi, self.side = action, rest, phi, side
+        self.offsets = np.asarray(offsets, dtype=np.int64)
+        self.next_values = next_values
+        self.n_actions = rest.shape[2] + 1
+        self.nonnegative = nonnegative
+        self.has_known_values = next_values is not None
+        self._step = (None, None, None)  # (h, actions (K,), side rows before each (K+1,))
+
+    def _index(self, h):
+        """Step ``h``'s behaviour actions and side-table positions (validated, cached)."""
+        if self._step[0] != h:
+            act = np.asarray(self.action.read(h))
+            A = self.n_actions
+            if act.size and (act.min() < -1 or act.max() >= A):
+                raise ValueError(f"next_action of step {h} holds values outside [-1, {A}): "
+                                 "the dataset is corrupt")
+            before = np.zeros(act.size + 1, dtype=np.int64)
+            np.cumsum(act < 0, out=before[1:])
+            want = int(self.offsets[h + 1] - self.offsets[h])
+            if before[-1] != want:
+                raise ValueError(
+                    f"next_action of step {h} marks {before[-1]} samples as side-table rows but "
+                    f"next_side_offsets gives {want}: the dataset is corrupt")
+            if h == self.rest.shape[0] - 1 and before[-1] != act.size:
+                raise ValueError("next_action of the last step must be -1 everywhere (no step "
+                                 "h+1): the dataset is corrupt")
+            self._step = (h, act, before)
+        return self._step[1], self._step[2]
+
+    def _side(self, h, start, stop, before):
+        lo = int(self.offsets[h] + before[start])
+        hi = int(self.offsets[h] + before[stop])
+        return self.side.read(lo, hi) if isinstance(self.side, RowFile) else self.side[lo:hi]
+
+    def _source_rows(self, h, start, stop, act, before, buf=None):
+        """Row ``m_i`` of each sample: ``phi[k, h+1]``, or the side table's row."""
+        n = stop - start
+        if h + 1 < self.phi.shape[0] and (act >= 0).any():
+            if isinstance(self.phi, FileField):
+                rows = self.phi.read(h + 1, start, stop, out=buf)
+            else:
+                rows = np.array(self.phi.read(h + 1, start, stop))
+            if rows.dtype != self.rest.dtype:
+                rows = rows.astype(self.rest.dtype)
+        else:
+            rows = np.empty((n,) + self.rest.shape[3:], dtype=self.rest.dtype) if buf is None \
+                else buf
+        miss = act < 0
+        if miss.any():
+            rows[miss] = self._side(h, start, stop, before)
+        return rows
+
+    def features(self, h, start=0, stop=None):
+        K = self.rest.shape[1]
+        stop = K if stop is None else min(stop, K)
+        act_all, before = self._index(h)
+        act = act_all[start:stop]
+        src = self._source_rows(h, start, stop, act, before)
+        rest = self.rest.read(h, start, stop)
+        out = np.empty((stop - start, self.n_actions) + self.rest.shape[3:], self.rest.dtype)
+        return _assemble(act, src, rest, out)
+
+    def known(self, h, start=0, stop=None):
+        return None if self.next_values is None else _as_float64(
+            self.next_values.read(h, start, stop))
+
+    def values(self, h, qmax, n, chunk):
+        act_all, before = self._index(h)
+        d = self.rest.shape[3]
+        m = min(chunk, n)
+        f64 = np.empty((m, self.n_actions, d))
+        src_buf = np.empty((m, d), self.rest.dtype)
+        rest_buf = np.empty((m,) + self.rest.shape[2:], self.rest.dtype)
+        out = np.empty(n)
+        for s in range(0, n, chunk):
+            e = min(n, s + chunk)
+            act = act_all[s:e]
+            src = self._source_rows(h, s, e, act, before, src_buf[: e - s])
+            if isinstance(self.rest, FileField):
+                rest = self.rest.read(h, s, e, out=rest_buf[: e - s])
+            else:
+                rest = self.rest.read(h, s, e)
+            feats = _assemble(act, src, rest, f64[: e - s])
+            nonneg = self.nonnegative
+            if nonneg is None:
+                nonneg = bool((feats >= 0).all())
+            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+        return out
+
+    def take(self, idx):
+        idx = np.asarray(idx)
+        feats = np.stack([self.features(h)[idx] for h in range(self.rest.shape[0])])
+        nv = None if self.next_values is None else ArrayField(self.next_values.take(idx))
+        return StoredNext(ArrayField(feats), nv, self.nonnegative)
+
+
 def _prefetched(field: FileField, h, n, chunk, shape):
     """``(start, stop, rows)`` over step ``h`` with ``rows`` in float64, read (``pread``) and
     cast in the calling thread into two reused buffers; ``rows`` is valid until the next
@@ -756,6 +967,8 @@ def open_directory(path, feature_map=None) -> StepSource:
         nxt = StoredNext(field("next_phi"),
                                      field("next_values") if "next_values" in files else None,
                                      mf.get("nonnegative_next_phi"))
+    elif mf["next"] == "behaviour":
+        nxt = _open_behaviour(path, mf, field, phi)
     elif mf["next"] == "table":
         table = np.load(path / files["next_table"], allow_pickle=False)
         kt = (np.load(path / files["next_table_values"], allow_pickle=False)
@@ -774,6 +987,55 @@ def open_directory(path, feature_map=None) -> StepSource:
             raise ValueError(f"{path / files['gram']} must hold (H, d, d) = {(H, d_, d_)} "
                              f"float64 Gram matrices, got {grams.shape} {grams.dtype}")
     return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams)
+
+
+def _open_behaviour(path: Path, mf: dict, field, phi: Field) -> BehaviourNext:
+    """The behaviour form's fields, checked against the manifest (each error names the
+    field)."""
+    files = mf["files"]
+    spec = mf.get("next_behaviour")
+    if not isinstance(spec, dict) or not isinstance(spec.get("version"), int):
+        raise ValueError(f"{path}: the manifest's 'next_behaviour' entry (a dict with a "
+                         "'version') is missing or malformed")
+    if spec["version"] > BEHAVIOUR_VERSION:
+        raise ValueError(f"{path}: next_behaviour version {spec['version']}; this r2pvi reads "
+                         f"versions <= {BEHAVIOUR_VERSION}: upgrade r2pvi")
+    for name in ("next_action", "next_rest", "next_side", "next_side_offsets"):
+        if name not in files or name not in mf.get("shapes", {}):
+            raise ValueError(f"{path}: the manifest lists no {name!r} field, which the "
+                             "behaviour next-state form needs")
+        if not (path / files[name]).is_file():
+            raise ValueError(f"{path}: the {name!r} field's file {files[name]} is missing")
+    if not isinstance(phi, FileField):
+        raise ValueError(f"{path}: the behaviour next-state form needs stored features "
+                         "('phi': 'stored')")
+    H, K, d = phi.shape
+    A = int(mf["n_actions"])
+    store = phi.dtype
+    action, rest = field("next_action"), field("next_rest")
+    if action.dtype.kind != "i":
+        raise ValueError(f"{path}: next_action must hold signed integers, got {action.dtype}")
+    if action.shape != (H, K):
+        raise ValueError(f"{path}: next_action has shape {action.shape}, expected {(H, K)}")
+    if rest.shape != (H, K, A - 1, d) or rest.dtype != store:
+        raise ValueError(f"{path}: next_rest must be {(H, K, A - 1, d)} {store}, got "
+                         f"{rest.shape} {rest.dtype}")
+    side = RowFile(path / files["next_side"])
+    if list(side.shape) != list(mf["shapes"]["next_side"]) or side.shape[1:] != (d,) or \
+            side.dtype != store:
+        raise ValueError(f"{path}: next_side must be (n_side, d) {store} as the manifest says "
+                         f"{mf['shapes']['next_side']}, got {side.shape} {side.dtype}")
+    offsets = np.load(path / files["next_side_offsets"], allow_pickle=False)
+    if (offsets.shape != (H + 1,) or offsets.dtype.kind not in "iu" or offsets[0] != 0
+            or (np.diff(offsets) < 0).any() or (np.diff(offsets) > K).any()
+            or offsets[-1] != side.shape[0] or offsets[-1] - offsets[-2] != K
+            or spec.get("n_side") != side.shape[0]):
+        raise ValueError(
+            f"{path}: next_side_offsets must be (H+1,) = ({H + 1},) non-decreasing integers "
+            f"from 0 to the side table's {side.shape[0]} rows (at most K per step, K at the "
+            "last step, n_side in the manifest): the dataset is corrupt")
+    kv = field("next_values") if "next_values" in files else None
+    return BehaviourNext(action, rest, phi, side, offsets, kv, mf.get("nonnegative_next_phi"))
 
 
 def _temp_dir(path: Path) -> Path:
@@ -832,9 +1094,14 @@ class _Computed(Field):
         return self.fn(h, start, self.shape[1] if stop is None else stop)
 
 
-def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) -> Path:
-    """Write ``source`` in the on-disk format (streamed step by step; atomic rename)."""
+def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
+                    next_form="full") -> Path:
+    """Write ``source`` in the on-disk format (streamed step by step; atomic rename).
+
+    ``next_form="behaviour"`` stores stored next-state features without the rows that equal
+    the next step's taken-action features (:class:`BehaviourNext`)."""
     path = Path(os.fspath(path))
+    next_form = _next_form(next_form)
     store = np.dtype(dtype) if dtype is not None else np.dtype(
         np.float32 if source.phi.dtype == np.float32 else np.float64)
     if store not in (np.float32, np.float64):
@@ -849,6 +1116,12 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
             _stream_field(tmp / files[name], field, dt, source.chunk, transform)
 
         phi_kind = "stored"
+        if next_form == "behaviour" and (isinstance(source.phi, MappedField) or isinstance(
+                source.next, MapNext | TableNext)):
+            raise ValueError(
+                "next_form='behaviour' applies to stored next-state features; this dataset "
+                "stores observations or next-state indices, which hold no next-state features "
+                "to spare: save it with next_form='full'")
         if isinstance(source.phi, MappedField):  # store what it is computed from
             phi_kind = "map"
             put("observations", source.phi.observations, source.phi.observations.dtype)
@@ -887,8 +1160,13 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
             kind = "stored"
             feats = nxt.next_phi if isinstance(nxt, StoredNext) else _Computed(
                 (H, K, A, d), store, nxt.features)
-            put("next_phi", feats, store,
-                lambda h, s, e, rows: np.nan_to_num(rows, nan=0.0) if h == H - 1 else rows)
+            if next_form == "behaviour":
+                kind = "behaviour"
+                meta["next_behaviour"] = _write_behaviour(tmp, files, shapes, source.phi,
+                                                          feats, store, source.chunk)
+            else:
+                put("next_phi", feats, store,
+                    lambda h, s, e, rows: np.nan_to_num(rows, nan=0.0) if h == H - 1 else rows)
             if nxt.has_known_values:
                 kv = nxt.next_values if isinstance(nxt, StoredNext) else _Computed(
                     (H, K, A), np.float64,
@@ -914,6 +1192,47 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
         raise
 
 
+def _behaviour_files(files, shapes, H, K, A, d, n_side):
+    names = {"next_action": (H, K), "next_rest": (H, K, A - 1, d), "next_side": (n_side, d),
+             "next_side_offsets": (H + 1,)}
+    for name, shape in names.items():
+        files[name] = name + ".npy"
+        shapes[name] = list(shape)
+    return {"version": BEHAVIOUR_VERSION, "n_side": int(n_side)}
+
+
+def _write_behaviour(tmp: Path, files, shapes, phi: Field, next_phi: Field, store, chunk):
+    """Stream ``next_phi`` into the behaviour form's files (see :class:`BehaviourNext`)."""
+    H, K, A, d = next_phi.shape
+    offsets = np.zeros(H + 1, dtype=np.int64)
+    raw = tmp / "next_side.raw"
+    with open(tmp / "next_action.npy", "wb") as fa, open(tmp / "next_rest.npy", "wb") as fr, \
+            open(raw, "wb") as fs:
+        _write_npy_header(fa, (H, K), _action_dtype(A))
+        _write_npy_header(fr, (H, K, A - 1, d), store)
+        for h in range(H):
+            for s, e, rows in next_phi.chunks(h, chunk):
+                rows = np.ascontiguousarray(rows, dtype=store)
+                if h == H - 1:
+                    rows = np.nan_to_num(rows, nan=0.0)
+                    following = None
+                else:
+                    following = np.ascontiguousarray(phi.read(h + 1, s, e), dtype=store)
+                action, rest, side = behaviour_split(following, rows)
+                fa.write(action.tobytes())
+                fr.write(np.ascontiguousarray(rest).tobytes())
+                fs.write(np.ascontiguousarray(side).tobytes())
+                offsets[h + 1] += side.shape[0]
+    offsets = np.cumsum(offsets)
+    n_side = int(offsets[-1])
+    with open(tmp / "next_side.npy", "wb") as fh, open(raw, "rb") as fs:
+        _write_npy_header(fh, (n_side, d), store)
+        shutil.copyfileobj(fs, fh, 1 << 22)
+    raw.unlink()
+    np.save(tmp / "next_side_offsets.npy", offsets, allow_pickle=False)
+    return _behaviour_files(files, shapes, H, K, A, d, n_side)
+
+
 class DatasetWriter:
     """Write a dataset bigger than memory, a chunk of trajectories at a time.
 
@@ -936,6 +1255,15 @@ class DatasetWriter:
         Warn once (at :meth:`close`) when features leave the simplex.
     overwrite : bool, default False
         Replace an existing dataset at ``path``.
+    next_form : {"full", "behaviour"}, default "full"
+        How the next-state features are stored. ``"full"``: every action's row,
+        ``next_phi (H, K, A, d)``. ``"behaviour"``: each sample's row that is bitwise equal to
+        the trajectory's next taken-action features ``phi[k, h+1]`` (the behaviour action's;
+        the chunk holds all H steps, so step h+1 is at hand) is not stored, only the other
+        ``A - 1`` rows and the action's index; samples where no row matches (episode ends,
+        padded steps, independent transitions, rows of known values, the last step) keep
+        their missing row in a side table. Fits are bitwise equal to the full form's; at
+        A = 2 on trajectories it stores about a third fewer bytes (docs/storage.md).
 
     Examples
     --------
@@ -951,10 +1279,30 @@ class DatasetWriter:
     ...     ds = OfflineDataset.open(os.path.join(tmp, "ds"))
     ...     ds.n_trajectories, ds.phi.dtype
     (30, dtype('float32'))
+
+    Trajectories, stored without the behaviour action's next-state row:
+
+    >>> K, H, A, d = 40, 5, 2, 3
+    >>> nxt = rng.dirichlet(np.ones(d), (K, H, A)).astype(np.float32)
+    >>> taken = rng.integers(A, size=(K, H))                # a_{h+1} of each trajectory
+    >>> phi = np.empty((K, H, d), np.float32)
+    >>> phi[:, 0] = rng.dirichlet(np.ones(d), K)
+    >>> phi[:, 1:] = nxt[np.arange(K)[:, None], np.arange(H - 1), taken[:, 1:]]
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     for form in ("full", "behaviour"):
+    ...         with DatasetWriter(os.path.join(tmp, form), horizon=H, n_features=d,
+    ...                            n_actions=A, next_form=form) as w:
+    ...             w.append(phi, rng.random((K, H)), nxt)
+    ...     full = OfflineDataset.open(os.path.join(tmp, "full"))
+    ...     beh = OfflineDataset.open(os.path.join(tmp, "behaviour"))
+    ...     same = np.array_equal(full.next_phi, beh.next_phi)
+    ...     n_side = len(np.load(os.path.join(tmp, "behaviour", "next_side.npy")))
+    >>> same, n_side                                    # only the last step's K rows
+    (True, 40)
     """
 
     def __init__(self, path, *, horizon, n_features, n_actions, dtype="float32",
-                 check_simplex=True, overwrite=False):
+                 check_simplex=True, overwrite=False, next_form="full"):
         from ._validation import check_scalar
 
         self.path = Path(os.fspath(path))
@@ -964,6 +1312,7 @@ class DatasetWriter:
         self.dtype = _float_dtype(dtype)
         self.check_simplex = check_simplex
         self.overwrite = overwrite
+        self.next_form = _next_form(next_form)
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists; pass overwrite=True or choose a new path")
         self._tmp: Path | None = _temp_dir(self.path)
@@ -1013,7 +1362,18 @@ class DatasetWriter:
         if not np.array_equal(last, n[H - 1], equal_nan=False):
             n = n.copy()
             n[H - 1] = last
-        np.save(shard / "next_phi.npy", n, allow_pickle=False)
+        if self.next_form == "behaviour":  # step h+1 of the same trajectories is in p
+            parts = [behaviour_split(p[h + 1] if h < H - 1 else None, n[h]) for h in range(H)]
+            np.save(shard / "next_action.npy", np.stack([q[0] for q in parts]),
+                    allow_pickle=False)
+            np.save(shard / "next_rest.npy", np.stack([q[1] for q in parts]),
+                    allow_pickle=False)
+            np.save(shard / "next_side.npy", np.concatenate([q[2] for q in parts]),
+                    allow_pickle=False)
+            np.save(shard / "next_side_counts.npy", np.array([len(q[2]) for q in parts]),
+                    allow_pickle=False)
+        else:
+            np.save(shard / "next_phi.npy", n, allow_pickle=False)
         if nv is not None:
             np.save(shard / "next_values.npy", nv, allow_pickle=False)
         self._shards.append((k, nv is not None))
@@ -1029,8 +1389,13 @@ class DatasetWriter:
         try:
             H, K, d, A = self.horizon, self.n_trajectories, self.n_features, self.n_actions
             any_nv = any(has for _, has in self._shards)
-            fields = {"phi": ((H, K, d), self.dtype), "rewards": ((H, K), np.float64),
-                      "next_phi": ((H, K, A, d), self.dtype)}
+            fields = {"phi": ((H, K, d), self.dtype), "rewards": ((H, K), np.float64)}
+            behaviour = self.next_form == "behaviour"
+            if behaviour:
+                fields["next_action"] = ((H, K), _action_dtype(A))
+                fields["next_rest"] = ((H, K, A - 1, d), self.dtype)
+            else:
+                fields["next_phi"] = ((H, K, A, d), self.dtype)
             if any_nv:
                 fields["next_values"] = ((H, K, A), np.float64)
             grams = np.zeros((H, d, d))
@@ -1049,6 +1414,11 @@ class DatasetWriter:
                 for f in shards:
                     if f is not None:
                         f.close()
+            files = {name: f"{name}.npy" for name in fields}
+            shapes = {name: list(shape) for name, (shape, _) in fields.items()}
+            extra = {}
+            if behaviour:
+                extra["next_behaviour"] = self._assemble_side(tmp, files, shapes)
             for i in range(len(self._shards)):
                 shutil.rmtree(tmp / f"shard{i:06d}")
             np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
@@ -1059,15 +1429,38 @@ class DatasetWriter:
             manifest = {
                 "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
                 "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
-                "dtype": self.dtype.name, "next": "stored",
-                "files": {**{name: f"{name}.npy" for name in fields}, "gram": GRAM_FILE},
-                "shapes": {name: list(shape) for name, (shape, _) in fields.items()},
+                "dtype": self.dtype.name, "next": "behaviour" if behaviour else "stored",
+                "files": {**files, "gram": GRAM_FILE}, "shapes": shapes,
                 "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
+                **extra,
             }
             return _finish(tmp, self.path, manifest, self.overwrite)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
+
+    def _assemble_side(self, tmp: Path, files, shapes) -> dict:
+        """The behaviour form's side table from the shards': step by step, then in
+        trajectory order (the shards are consecutive trajectories)."""
+        H, d, A = self.horizon, self.n_features, self.n_actions
+        shards = [tmp / f"shard{i:06d}" for i in range(len(self._shards))]
+        counts = np.stack([np.load(s / "next_side_counts.npy", allow_pickle=False)
+                           for s in shards])  # (shards, H)
+        starts = np.concatenate([np.zeros((len(shards), 1), np.int64),
+                                 np.cumsum(counts, axis=1)], axis=1)
+        offsets = np.concatenate([[0], np.cumsum(counts.sum(axis=0))]).astype(np.int64)
+        n_side = int(offsets[-1])
+        with open(tmp / "next_side.npy", "wb") as fh:
+            _write_npy_header(fh, (n_side, d), self.dtype)
+            sides = [np.load(s / "next_side.npy", mmap_mode="r", allow_pickle=False)
+                     for s in shards]
+            for h in range(H):
+                for i, side in enumerate(sides):
+                    rows = side[starts[i, h]:starts[i, h + 1]]
+                    fh.write(np.ascontiguousarray(rows, dtype=self.dtype).tobytes())
+            del sides
+        np.save(tmp / "next_side_offsets.npy", offsets, allow_pickle=False)
+        return _behaviour_files(files, shapes, H, self.n_trajectories, A, d, n_side)
 
     def abort(self):
         """Discard everything written so far."""
