@@ -19,7 +19,7 @@ import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset
 from r2pvi.algorithms import DRPVI, DRVIL
 from r2pvi.envs import FiniteLinearMDP
-from r2pvi.storage import BehaviourNext, _assemble, behaviour_split
+from r2pvi.storage import ArrayField, BehaviourNext, behaviour_split
 
 H, A = 5, 2
 CENTERS = np.linspace(0.0, 1.0, 4)
@@ -194,12 +194,15 @@ def test_split_and_assemble_round_trip_bitwise(args):
     first = [next((a for a in range(A_) if (rows[i, a].view(np.uint64) == u[i]).all()), -1)
              for i in range(n)]
     assert action.tolist() == first
-    src = following.copy()
-    src[action < 0] = side
-    out = _assemble(action, src, rest, np.empty_like(rows))
-    assert out.tobytes() == rows.tobytes()
-    none, rest0, side0 = behaviour_split(None, rows)  # the last step: every row in the table
-    assert (none == -1).all() and side0.shape == (n, d)
+    last, rest1, side1 = behaviour_split(None, rows)  # the last step: every row in the table
+    assert (last == -1).all() and side1.shape == (n, d)
+    nxt = BehaviourNext(ArrayField(np.stack([action, last])), ArrayField(np.stack([rest, rest1])),
+                        ArrayField(np.stack([np.zeros_like(following), following])),
+                        np.concatenate([side, side1]), [0, len(side), len(side) + n])
+    for h in (0, 1):
+        assert nxt.features(h).tobytes() == rows.tobytes()
+        s = n // 3
+        assert nxt.features(h, s, n).tobytes() == rows[s:].tobytes()
 
 
 def corrupt(src, tmp_path, edit):

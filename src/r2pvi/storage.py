@@ -52,6 +52,8 @@ __all__ = [
     "DaskField",
     "StoredNext",
     "BehaviourNext",
+    "RowFile",
+    "behaviour_split",
     "TableNext",
     "MapNext",
     "MappedField",
@@ -468,22 +470,6 @@ def behaviour_split(following, rows):
     return action, rest, side
 
 
-def _assemble(action, source, rest, out):
-    """``out (n, A, d)`` from the behaviour form: ``out[i, m_i] = source[i]`` and the other
-    actions' rows from ``rest[i]`` in increasing action order (``m_i = max(action[i], 0)``).
-    Writes into ``out`` (any float type: the copies cast)."""
-    A = out.shape[1]
-    missing = np.maximum(action, 0)
-    for a in range(A):
-        dst = out[:, a]
-        if a < A - 1:
-            np.copyto(dst, rest[:, a])  # right where a < m_i
-        if a > 0:
-            np.copyto(dst, rest[:, a - 1], where=(missing < a)[:, None])
-        np.copyto(dst, source, where=(missing == a)[:, None])
-    return out
-
-
 class RowFile:
     """Rows ``(n, ...)`` of a ``.npy`` file read by range with ``pread`` (the side table)."""
 
@@ -564,33 +550,45 @@ class BehaviourNext(NextStates):
         hi = int(self.offsets[h] + before[stop])
         return self.side.read(lo, hi) if isinstance(self.side, RowFile) else self.side[lo:hi]
 
-    def _source_rows(self, h, start, stop, act, before, buf=None):
-        """Row ``m_i`` of each sample: ``phi[k, h+1]``, or the side table's row."""
+    def _staged(self, h, start, stop, act, before, stage):
+        """The rows of samples ``start:stop`` as ``(n, A, d)`` in the storage type.
+
+        ``stage (A, m, d)`` (``m >= n``) is a reused buffer: block 0 receives each sample's
+        row ``m_i`` (``phi[k, h+1]``, read straight into it, or the side table's row), blocks
+        1.. the stored rows of the other actions; one gather of whole rows (``d`` floats
+        each, as opaque bytes) puts them in action order."""
         n = stop - start
+        A, m, d = stage.shape
+        src = stage[0, :n]
         if h + 1 < self.phi.shape[0] and (act >= 0).any():
-            if isinstance(self.phi, FileField):
-                rows = self.phi.read(h + 1, start, stop, out=buf)
-            else:
-                rows = np.array(self.phi.read(h + 1, start, stop))
-            if rows.dtype != self.rest.dtype:
-                rows = rows.astype(self.rest.dtype)
-        else:
-            rows = np.empty((n,) + self.rest.shape[3:], dtype=self.rest.dtype) if buf is None \
-                else buf
+            got = (self.phi.read(h + 1, start, stop, out=src) if isinstance(self.phi, FileField)
+                   else self.phi.read(h + 1, start, stop))
+            if got is not src:
+                np.copyto(src, got)
         miss = act < 0
         if miss.any():
-            rows[miss] = self._side(h, start, stop, before)
-        return rows
+            src[miss] = self._side(h, start, stop, before)
+        if A == 2 and isinstance(self.rest, FileField):
+            dst = stage[1, :n].reshape(n, 1, d)
+            got = self.rest.read(h, start, stop, out=dst)
+            if got is not dst:
+                np.copyto(dst, got)
+        elif A > 1:
+            np.copyto(stage[1:, :n], np.moveaxis(self.rest.read(h, start, stop), 1, 0))
+        whole = stage.reshape(A * m, d).view(np.dtype((np.void, d * stage.itemsize)))
+        missing = np.maximum(act, 0).astype(np.intp)[:, None]
+        cols = np.arange(A)
+        block = np.where(cols == missing, 0, 1 + cols - (cols > missing))
+        order = block * m + np.arange(n)[:, None]
+        return whole.reshape(-1)[order.reshape(-1)].view(stage.dtype).reshape(n, A, d)
 
     def features(self, h, start=0, stop=None):
         K = self.rest.shape[1]
         stop = K if stop is None else min(stop, K)
         act_all, before = self._index(h)
-        act = act_all[start:stop]
-        src = self._source_rows(h, start, stop, act, before)
-        rest = self.rest.read(h, start, stop)
-        out = np.empty((stop - start, self.n_actions) + self.rest.shape[3:], self.rest.dtype)
-        return _assemble(act, src, rest, out)
+        stage = np.empty((self.n_actions, max(stop - start, 1), self.rest.shape[3]),
+                         self.rest.dtype)
+        return self._staged(h, start, stop, act_all[start:stop], before, stage)
 
     def known(self, h, start=0, stop=None):
         return None if self.next_values is None else _as_float64(
@@ -598,21 +596,15 @@ class BehaviourNext(NextStates):
 
     def values(self, h, qmax, n, chunk):
         act_all, before = self._index(h)
-        d = self.rest.shape[3]
+        A, d = self.n_actions, self.rest.shape[3]
         m = min(chunk, n)
-        f64 = np.empty((m, self.n_actions, d))
-        src_buf = np.empty((m, d), self.rest.dtype)
-        rest_buf = np.empty((m,) + self.rest.shape[2:], self.rest.dtype)
+        stage = np.empty((A, m, d), self.rest.dtype)  # reused buffers, as StoredNext's
+        f64 = np.empty((m, A, d))
         out = np.empty(n)
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
-            act = act_all[s:e]
-            src = self._source_rows(h, s, e, act, before, src_buf[: e - s])
-            if isinstance(self.rest, FileField):
-                rest = self.rest.read(h, s, e, out=rest_buf[: e - s])
-            else:
-                rest = self.rest.read(h, s, e)
-            feats = _assemble(act, src, rest, f64[: e - s])
+            feats = f64[: e - s]
+            np.copyto(feats, self._staged(h, s, e, act_all[s:e], before, stage))
             nonneg = self.nonnegative
             if nonneg is None:
                 nonneg = bool((feats >= 0).all())
