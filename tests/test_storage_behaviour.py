@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import r2pvi
-from r2pvi import DatasetWriter, OfflineDataset
+from r2pvi import DatasetWriter, OfflineDataset, storage
 from r2pvi.algorithms import DRPVI, DRVIL
 from r2pvi.envs import FiniteLinearMDP
 from r2pvi.storage import ArrayField, BehaviourNext, behaviour_split
@@ -96,7 +96,8 @@ def forms(tmp_path_factory):
 
 
 @pytest.mark.parametrize("case", ["episodes", "writer", "transitions"])
-def test_rebuilt_next_features_are_the_stored_ones_bitwise(forms, case):
+def test_rebuilt_next_features_are_the_stored_ones_bitwise(forms, case, monkeypatch):
+    monkeypatch.setattr(storage, "SIDE_BLOCK", 7)  # side positions: counts per 7 samples
     full, beh = (OfflineDataset.open(p) for p in forms[case])
     assert isinstance(beh._source.next, BehaviourNext)
     assert same_bits(beh.next_phi, full.next_phi)

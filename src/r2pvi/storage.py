@@ -499,6 +499,9 @@ class RowFile:
         return out
 
 
+SIDE_BLOCK = 4096  # side-table positions are kept per block of samples (one count each)
+
+
 class BehaviourNext(NextStates):
     """Next-state features stored without the behaviour action's row: ``phi[:, h+1]``.
 
@@ -522,7 +525,8 @@ class BehaviourNext(NextStates):
         self.n_actions = rest.shape[2] + 1
         self.nonnegative = nonnegative
         self.has_known_values = next_values is not None
-        self._step = (None, None, None)  # (h, actions (K,), side rows before each (K+1,))
+        # (h, actions (K,), side rows before each (K+1,), staged block of each row (K, A))
+        self._step = (None, None, None, None)
 
     def _index(self, h):
         """Step ``h``'s behaviour actions and side-table positions (validated, cached)."""
@@ -532,25 +536,44 @@ class BehaviourNext(NextStates):
             if act.size and (act.min() < -1 or act.max() >= A):
                 raise ValueError(f"next_action of step {h} holds values outside [-1, {A}): "
                                  "the dataset is corrupt")
-            before = np.zeros(act.size + 1, dtype=np.int64)
-            np.cumsum(act < 0, out=before[1:])
+            # side rows before sample s: before[s // SIDE_BLOCK] + those in the block to s
+            miss = act < 0
+            K = act.size
+            blocks = np.zeros(K // SIDE_BLOCK + 2, dtype=np.int64)
+            full = K // SIDE_BLOCK * SIDE_BLOCK
+            np.cumsum(np.count_nonzero(miss[:full].reshape(-1, SIDE_BLOCK), axis=1),
+                      out=blocks[1:-1])
+            blocks[-1] = blocks[-2] + np.count_nonzero(miss[full:])
             want = int(self.offsets[h + 1] - self.offsets[h])
-            if before[-1] != want:
+            if blocks[-1] != want:
                 raise ValueError(
-                    f"next_action of step {h} marks {before[-1]} samples as side-table rows but "
-                    f"next_side_offsets gives {want}: the dataset is corrupt")
-            if h == self.rest.shape[0] - 1 and before[-1] != act.size:
+                    f"next_action of step {h} marks {blocks[-1]} samples as side-table rows "
+                    f"but next_side_offsets gives {want}: the dataset is corrupt")
+            if h == self.rest.shape[0] - 1 and blocks[-1] != K:
                 raise ValueError("next_action of the last step must be -1 everywhere (no step "
                                  "h+1): the dataset is corrupt")
-            self._step = (h, act, before)
-        return self._step[1], self._step[2]
+            # block[i, a]: the stage block holding out[i, a] (0: row m_i, 1 + j: rest[i, j])
+            m = np.maximum(act, 0)
+            block = np.empty((A, K), act.dtype)
+            for a in range(A):  # one action at a time: no broadcasts over a tiny axis
+                np.greater(m, a, out=block[a], casting="unsafe")
+                block[a] += a
+                block[a] *= m != a
+            self._step = (h, act, (miss, blocks), np.ascontiguousarray(block.T))
+        return self._step[1:]
 
     def _side(self, h, start, stop, before):
-        lo = int(self.offsets[h] + before[start])
-        hi = int(self.offsets[h] + before[stop])
+        miss, blocks = before
+
+        def count(s):
+            b = s // SIDE_BLOCK
+            return int(blocks[b]) + np.count_nonzero(miss[b * SIDE_BLOCK:s])
+
+        lo = int(self.offsets[h]) + count(start)
+        hi = lo + np.count_nonzero(miss[start:stop])
         return self.side.read(lo, hi) if isinstance(self.side, RowFile) else self.side[lo:hi]
 
-    def _staged(self, h, start, stop, act, before, stage):
+    def _staged(self, h, start, stop, index, stage, order):
         """The rows of samples ``start:stop`` as ``(n, A, d)`` in the storage type.
 
         ``stage (A, m, d)`` (``m >= n``) is a reused buffer: block 0 receives each sample's
@@ -559,6 +582,7 @@ class BehaviourNext(NextStates):
         each, as opaque bytes) puts them in action order."""
         n = stop - start
         A, m, d = stage.shape
+        act, before, block = index[0][start:stop], index[1], index[2][start:stop]
         src = stage[0, :n]
         if h + 1 < self.phi.shape[0] and (act >= 0).any():
             got = (self.phi.read(h + 1, start, stop, out=src) if isinstance(self.phi, FileField)
@@ -575,36 +599,37 @@ class BehaviourNext(NextStates):
                 np.copyto(dst, got)
         elif A > 1:
             np.copyto(stage[1:, :n], np.moveaxis(self.rest.read(h, start, stop), 1, 0))
+        # out[i, a] is row block[i, a] * m + i of the stage
+        order = order[:n]
+        np.multiply(block, m, out=order, dtype=np.intp)
+        order += np.arange(n)[:, None]
         whole = stage.reshape(A * m, d).view(np.dtype((np.void, d * stage.itemsize)))
-        missing = np.maximum(act, 0).astype(np.intp)[:, None]
-        cols = np.arange(A)
-        block = np.where(cols == missing, 0, 1 + cols - (cols > missing))
-        order = block * m + np.arange(n)[:, None]
-        return whole.reshape(-1)[order.reshape(-1)].view(stage.dtype).reshape(n, A, d)
+        return np.take(whole.reshape(-1), order.reshape(-1)).view(stage.dtype).reshape(n, A, d)
 
     def features(self, h, start=0, stop=None):
         K = self.rest.shape[1]
         stop = K if stop is None else min(stop, K)
-        act_all, before = self._index(h)
-        stage = np.empty((self.n_actions, max(stop - start, 1), self.rest.shape[3]),
-                         self.rest.dtype)
-        return self._staged(h, start, stop, act_all[start:stop], before, stage)
+        m = max(stop - start, 1)
+        stage = np.empty((self.n_actions, m, self.rest.shape[3]), self.rest.dtype)
+        order = np.empty((m, self.n_actions), dtype=np.intp)
+        return self._staged(h, start, stop, self._index(h), stage, order)
 
     def known(self, h, start=0, stop=None):
         return None if self.next_values is None else _as_float64(
             self.next_values.read(h, start, stop))
 
     def values(self, h, qmax, n, chunk):
-        act_all, before = self._index(h)
+        index = self._index(h)
         A, d = self.n_actions, self.rest.shape[3]
         m = min(chunk, n)
         stage = np.empty((A, m, d), self.rest.dtype)  # reused buffers, as StoredNext's
+        order = np.empty((m, A), dtype=np.intp)
         f64 = np.empty((m, A, d))
         out = np.empty(n)
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
             feats = f64[: e - s]
-            np.copyto(feats, self._staged(h, s, e, act_all[s:e], before, stage))
+            np.copyto(feats, self._staged(h, s, e, index, stage, order))
             nonneg = self.nonnegative
             if nonneg is None:
                 nonneg = bool((feats >= 0).all())
