@@ -11,8 +11,9 @@ one range of trajectories at a time, wherever they are:
 - :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
 
 Next-state features are computed where they need not be stored (:class:`StoredNext`,
-:class:`TableNext` for finite MDPs, :class:`MapNext` for stored observations and a feature
-map), and the engine asks for the next-state values ``V_{h+1}`` chunk by chunk through
+:class:`BehaviourNext` for trajectories, whose taken action's row is the next step's
+features, :class:`TableNext` for finite MDPs, :class:`MapNext` for stored observations and a
+feature map), and the engine asks for the next-state values ``V_{h+1}`` chunk by chunk through
 :meth:`StepSource.next_state_values`.
 
 The on-disk format (format version 2) is a directory::
@@ -24,6 +25,10 @@ The on-disk format (format version 2) is a directory::
     next_index.npy       (H, K)        next-state indices into
     next_table.npy       (S, A, d) or (H, S, A, d)   a feature table (row h of a 4-D table
                                        holds the features used for the next states of step h)
+    next_action.npy      (H, K)        or the behaviour form: the action whose row is
+    next_rest.npy        (H, K, A-1, d)  phi[k, h+1] (-1: none), the other actions' rows,
+    next_side.npy        (n_side, d)   the rows where none matched, by step (offsets
+    next_side_offsets.npy (H+1,)       into next_side); see BehaviourNext
     next_values.npy      (H, K, A)     known next-state action values (NaN: learn); optional
     next_table_values.npy (S, A)       known values by next state (table form); optional
     extra_<name>.npy     (K, H, ...)   observed states, actions, next states; optional
