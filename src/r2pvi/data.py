@@ -246,8 +246,9 @@ class OfflineDataset:
         if check_simplex:
             used = tab if tab.ndim == 3 else tab[: max(H - 1, 1)]
             check_simplex_features(used, "table")
-        extras = _check_extras(K, H, A, states=states, actions=actions, next_states=idx)
-        ix = np.ascontiguousarray(idx.T)
+        ix = np.array(idx.T, order="C", copy=True)  # private, step-major; ix.T is the extra
+        extras = _check_extras(K, H, A, _owned=("next_states",), states=states,
+                               actions=actions, next_states=ix.T)
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi)
         return cls(_source=source)
@@ -746,7 +747,10 @@ class OfflineDataset:
             raise file_error(path, None, f"holds invalid data: {exc}") from None
 
 
-def _check_extras(K, H, A, **given) -> dict:
+def _check_extras(K, H, A, _owned=(), **given) -> dict:
+    """Observed states, actions, next states: checked, kept private and read-only.
+
+    ``_owned`` names arrays the dataset already owns (made here, never the caller's)."""
     extras = {}
     for name, value in given.items():
         if value is None:
@@ -754,10 +758,12 @@ def _check_extras(K, H, A, **given) -> dict:
         arr = np.asarray(value)
         if arr.shape[:2] != (K, H):
             raise ValueError(f"{name} must start with (K, H) = {(K, H)}, got {arr.shape}")
+        owned = name in _owned
         if name == "actions":
             arr = as_index_array(arr, "actions", A, ndim=2)
+            owned = True  # as_index_array returns a new array
         # A private, read-only copy: the caller's array is neither shared nor mutable here.
-        extras[name] = _readonly(np.array(arr, copy=True))
+        extras[name] = _readonly(arr if owned else np.array(arr, copy=True))
     return extras
 
 

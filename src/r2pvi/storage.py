@@ -853,11 +853,14 @@ def layout_step_major(x: np.ndarray) -> np.ndarray:
     return sm if sm.flags.c_contiguous else np.ascontiguousarray(sm)
 
 
-def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
+def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
+                         simplex: bool = True):
     """Validate one chunk of step-major rows; returns ``(phi, next_phi)`` simplex flags
     and non-negativity: ``(neg_phi, off_phi, neg_next, off_next, nonneg_phi, nonneg_next)``.
 
-    ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used.
+    ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used. With
+    ``simplex=False`` the simplex flags (row sums: most of the work) are not computed and
+    returned False; everything else is checked the same.
     """
     for name, x in (("phi", phi), ("rewards", rewards)):
         if not np.isfinite(x).all():
@@ -866,7 +869,7 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
     if next_values is not None and not last_step and np.isinf(next_values).any():
         raise ValueError(f"next_values contains {int(np.count_nonzero(np.isinf(next_values)))} "
                          "infinite entries; use NaN where the value must be learned")
-    flags = simplex_flags(phi)
+    flags = simplex_flags(phi) if simplex else (False, False)
     nonneg_phi = bool((phi >= 0).all())
     if last_step or next_phi is None:
         return flags + (False, False, nonneg_phi, True)
@@ -881,7 +884,8 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
                 "may be left undefined)"
             )
     # NaN rows (known values) count as neither negative nor off the simplex.
-    return flags + simplex_flags(next_phi) + (nonneg_phi, not bool((next_phi < 0).any()))
+    next_flags = simplex_flags(next_phi) if simplex else (False, False)
+    return flags + next_flags + (nonneg_phi, not bool((next_phi < 0).any()))
 
 
 def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chunk=CHUNK,
@@ -901,7 +905,7 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
             try:
                 flags = check_features_chunk(
                     phi[h, s:e], rewards[h, s:e],
-                    None if next_phi is None else next_phi[h, s:e], nv, last)
+                    None if next_phi is None else next_phi[h, s:e], nv, last, check_simplex)
             except ValueError as exc:
                 raise _counted(exc, phi, rewards, next_values, chunk) from None
             for i in range(4):
@@ -1370,7 +1374,7 @@ class DatasetWriter:
                                  f"{np.shape(next_values)}; use NaN where the value is learned")
         for h in range(H):
             f = check_features_chunk(p[h], r[h], n[h], None if nv is None else nv[h],
-                                     h == H - 1)
+                                     h == H - 1, self.check_simplex)
             for i in range(4):
                 self._flags[i] = self._flags[i] or f[i]
             self._flags[4] &= f[4]
