@@ -264,3 +264,27 @@ def test_next_form_is_checked(forms, tmp_path):
                           rng.dirichlet(np.ones(S), (3, d)), initial=1)
     with pytest.raises(ValueError, match="next_form='full'"):  # indices: no features stored
         env.collect(20, seed=0).save(tmp_path / "t", next_form="behaviour")
+
+
+def test_table_datasets_keep_private_extras_and_validate_without_simplex_checks():
+    """Dataset construction copies no more than it must, and drops no check."""
+    rng = np.random.default_rng(5)
+    K, S, d = 40, 6, 3
+    table = rng.dirichlet(np.ones(d), (S, A))
+    s, a = rng.integers(S, size=(K, H)), rng.integers(A, size=(K, H))
+    ns_sm = rng.integers(S, size=(H, K))  # step-major already: a view needs no transpose
+    ds = OfflineDataset.from_next_state_table(table[s, a], rng.random((K, H)), ns_sm.T, table,
+                                              check_simplex=False, states=s, actions=a)
+    for mine, theirs in ((ds.next_states, ns_sm), (ds.states, s), (ds.actions, a)):
+        assert not np.shares_memory(mine, theirs) and not mine.flags.writeable
+    np.testing.assert_array_equal(ds.next_states, ns_sm.T)
+    phi = table[s, a]
+    phi[3, 1, 0] = np.nan
+    with pytest.raises(ValueError, match="phi contains 1 NaN"):
+        OfflineDataset.from_next_state_table(phi, np.zeros((K, H)), ns_sm.T, table,
+                                             check_simplex=False)
+    with pytest.raises(ValueError, match="next_states must lie"):
+        OfflineDataset.from_next_state_table(table[s, a], np.zeros((K, H)), ns_sm.T + S, table)
+    with pytest.raises(ValueError, match=r"actions must lie in \[0, 2\)"):
+        OfflineDataset.from_next_state_table(table[s, a], np.zeros((K, H)), ns_sm.T, table,
+                                             actions=a + 1)

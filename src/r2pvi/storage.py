@@ -557,15 +557,24 @@ class BehaviourNext(NextStates):
             if h == self.rest.shape[0] - 1 and blocks[-1] != K:
                 raise ValueError("next_action of the last step must be -1 everywhere (no step "
                                  "h+1): the dataset is corrupt")
-            # block[i, a]: the stage block holding out[i, a] (0: row m_i, 1 + j: rest[i, j])
+            # block[a, i]: the stage block holding out[i, a] (0: row m_i, 1 + j: rest[i, j])
             m = np.maximum(act, 0)
             block = np.empty((A, K), act.dtype)
             for a in range(A):  # one action at a time: no broadcasts over a tiny axis
                 np.greater(m, a, out=block[a], casting="unsafe")
                 block[a] += a
                 block[a] *= m != a
-            self._step = (h, act, (miss, blocks), np.ascontiguousarray(block.T))
+            self._step = (h, act, (miss, blocks), block)
         return self._step[1:]
+
+    def _order(self, block, start, stop, rows, m):
+        """``(n, A)`` stage rows of ``out[i, a]``: ``block[a, i] * m + rows[i]``."""
+        A = block.shape[0]
+        order = np.empty((stop - start, A), dtype=np.intp)
+        for a in range(A):
+            np.multiply(block[a, start:stop], m, out=order[:, a], dtype=np.intp)
+            order[:, a] += rows
+        return order
 
     def _side(self, h, start, stop, before):
         miss, blocks = before
@@ -584,18 +593,20 @@ class BehaviourNext(NextStates):
         ``stage (A, m, d)`` (``m >= n``) is a reused buffer: block 0 receives each sample's
         row ``m_i`` (``phi[k, h+1]``, read straight into it, or the side table's row), blocks
         1.. the stored rows of the other actions; one gather of whole rows (``d`` floats
-        each, as opaque bytes) puts them in action order."""
+        each, as opaque bytes) by ``order (n, A)`` (:meth:`_order`) puts them in action
+        order."""
         n = stop - start
         A, m, d = stage.shape
-        act, before, block = index[0][start:stop], index[1], index[2][start:stop]
+        before = index[1]
+        miss = before[0][start:stop]
         src = stage[0, :n]
-        if h + 1 < self.phi.shape[0] and (act >= 0).any():
+        any_miss = bool(miss.any())
+        if h + 1 < self.phi.shape[0] and not (any_miss and miss.all()):
             got = (self.phi.read(h + 1, start, stop, out=src) if isinstance(self.phi, FileField)
                    else self.phi.read(h + 1, start, stop))
             if got is not src:
                 np.copyto(src, got)
-        miss = act < 0
-        if miss.any():
+        if any_miss:
             src[miss] = self._side(h, start, stop, before)
         if A == 2 and isinstance(self.rest, FileField):
             dst = stage[1, :n].reshape(n, 1, d)
@@ -604,10 +615,7 @@ class BehaviourNext(NextStates):
                 np.copyto(dst, got)
         elif A > 1:
             np.copyto(stage[1:, :n], np.moveaxis(self.rest.read(h, start, stop), 1, 0))
-        # out[i, a] is row block[i, a] * m + i of the stage
-        order = order[:n]
-        np.multiply(block, m, out=order, dtype=np.intp)
-        order += np.arange(n)[:, None]
+        # out[i, a] is row order[i, a] of the stage
         whole = stage.reshape(A * m, d).view(np.dtype((np.void, d * stage.itemsize)))
         return np.take(whole.reshape(-1), order.reshape(-1)).view(stage.dtype).reshape(n, A, d)
 
@@ -616,8 +624,9 @@ class BehaviourNext(NextStates):
         stop = K if stop is None else min(stop, K)
         m = max(stop - start, 1)
         stage = np.empty((self.n_actions, m, self.rest.shape[3]), self.rest.dtype)
-        order = np.empty((m, self.n_actions), dtype=np.intp)
-        return self._staged(h, start, stop, self._index(h), stage, order)
+        index = self._index(h)
+        order = self._order(index[2], start, stop, np.arange(stop - start), m)
+        return self._staged(h, start, stop, index, stage, order)
 
     def known(self, h, start=0, stop=None):
         return None if self.next_values is None else _as_float64(
@@ -628,13 +637,13 @@ class BehaviourNext(NextStates):
         A, d = self.n_actions, self.rest.shape[3]
         m = min(chunk, n)
         stage = np.empty((A, m, d), self.rest.dtype)  # reused buffers, as StoredNext's
-        order = np.empty((m, A), dtype=np.intp)
+        order = self._order(index[2], 0, n, np.arange(n) % chunk, m)  # the step's, by chunk
         f64 = np.empty((m, A, d))
         out = np.empty(n)
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
             feats = f64[: e - s]
-            np.copyto(feats, self._staged(h, s, e, index, stage, order))
+            np.copyto(feats, self._staged(h, s, e, index, stage, order[s:e]))
             nonneg = self.nonnegative
             if nonneg is None:
                 nonneg = bool((feats >= 0).all())
