@@ -567,10 +567,10 @@ class BehaviourNext(NextStates):
             self._step = (h, act, (miss, blocks), block)
         return self._step[1:]
 
-    def _order(self, block, start, stop, rows, m):
+    def _order(self, block, start, stop, rows, m, out=None):
         """``(n, A)`` stage rows of ``out[i, a]``: ``block[a, i] * m + rows[i]``."""
         A = block.shape[0]
-        order = np.empty((stop - start, A), dtype=np.intp)
+        order = np.empty((stop - start, A), dtype=np.intp) if out is None else out
         for a in range(A):
             np.multiply(block[a, start:stop], m, out=order[:, a], dtype=np.intp)
             order[:, a] += rows
@@ -637,13 +637,15 @@ class BehaviourNext(NextStates):
         A, d = self.n_actions, self.rest.shape[3]
         m = min(chunk, n)
         stage = np.empty((A, m, d), self.rest.dtype)  # reused buffers, as StoredNext's
-        order = self._order(index[2], 0, n, np.arange(n) % chunk, m)  # the step's, by chunk
+        order = np.empty((m, A), dtype=np.intp)
+        rows = np.arange(m)
         f64 = np.empty((m, A, d))
         out = np.empty(n)
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
             feats = f64[: e - s]
-            np.copyto(feats, self._staged(h, s, e, index, stage, order[s:e]))
+            o = self._order(index[2], s, e, rows[: e - s], m, order[: e - s])
+            np.copyto(feats, self._staged(h, s, e, index, stage, o))
             nonneg = self.nonnegative
             if nonneg is None:
                 nonneg = bool((feats >= 0).all())
