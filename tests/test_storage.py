@@ -339,6 +339,31 @@ def test_dask_arrays_on_a_local_cluster_fit_as_in_memory(cluster_client):
         OfflineDataset.from_dask(phi, rewards, nphi)
 
 
+def test_dask_products_are_summed_on_the_workers(cluster_client):
+    """TV, KL and PEVI steps need only ``Lambda`` and ``Phi^T y``: those are formed on the
+    workers, so the client never reads the step's features (any read raises here); chi^2
+    reads them (explicit rows). Weighted (variance-aware) fits too."""
+    da = pytest.importorskip("dask.array")
+    phi, rewards, nphi, nv = make_arrays()
+    mem = OfflineDataset.from_features(phi, rewards, nphi, nv)
+    ds = OfflineDataset.from_dask(da.from_array(phi, chunks=(170, -1, -1)),
+                                  da.from_array(rewards, chunks=(170, -1)),
+                                  da.from_array(nphi, chunks=(170, -1, -1, -1)),
+                                  da.from_array(nv, chunks=(170, -1, -1)))
+    field = ds._source.phi
+
+    def no_client_reads(*args, **kwargs):
+        raise AssertionError("the step's features were read on the client")
+
+    field.read = field.chunks = no_client_reads
+    for name in ("TV", "KL", "PEVI"):
+        assert_same_fit(ESTIMATORS[name]().fit(ds), ESTIMATORS[name]().fit(mem))
+    va = {"variance_aware": True}
+    assert_same_fit(r2pvi.R2PVI("tv", **va).fit(ds), r2pvi.R2PVI("tv", **va).fit(mem))
+    with pytest.raises(AssertionError, match="read on the client"):
+        ESTIMATORS["chi2"]().fit(ds)
+
+
 def test_actions_with_known_values_need_no_features(tmp_path):
     phi, rewards, nphi, nv = make_arrays(200, seed=5)
     holes = nphi.copy()
