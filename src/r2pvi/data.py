@@ -638,6 +638,29 @@ class OfflineDataset:
         """Step ``h``'s taken-action features ``(K, d)`` in float64 (a view when stored so)."""
         return self._source.phi_step(h)
 
+    def step_times(self, h: int, z) -> np.ndarray:
+        """``phi_h @ z``: step ``h``'s taken-action features times ``z`` (``(d,)`` or
+        ``(d, m)``), in float64, formed chunk by chunk where the data is (on the workers for
+        Dask arrays), so only the ``K`` (or ``K x m``) products are held.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> rng = np.random.default_rng(0)
+        >>> ds = OfflineDataset.from_features(rng.dirichlet(np.ones(3), (5, 2)),
+        ...                                   np.zeros((5, 2)),
+        ...                                   rng.dirichlet(np.ones(3), (5, 2, 2)))
+        >>> z = np.array([1.0, -1.0, 2.0])
+        >>> bool(np.allclose(ds.step_times(1, z), ds.phi[:, 1] @ z))
+        True
+        """
+        z = np.asarray(z, dtype=np.float64)
+        if z.ndim not in (1, 2) or z.shape[0] != self.n_features:
+            raise ValueError(f"z must have shape (d,) or (d, m) with d = {self.n_features}, "
+                             f"got {z.shape}")
+        return self._source.phi_times(h, z)
+
     def subset(self, indices) -> OfflineDataset:
         """The dataset restricted to the trajectories ``indices`` (for bootstraps, splits);
         in memory, whatever the storage."""

@@ -703,6 +703,54 @@ def _dask_values(nxt: StoredNext, h, qmax):
     return np.asarray(v.compute(), dtype=np.float64)
 
 
+def _dask_products(field: DaskField, h, cols, weights, with_gram):
+    """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` summed on the Dask workers.
+
+    One task per trajectory chunk forms that chunk's products in float64 (the columns, and
+    the weights ``W``, travel to the workers with the graph), Dask adds the partial sums up
+    in a tree, and only the ``d x (d + m)`` sums reach the client: the step's features never
+    do. Equal to the local chunked sums up to the order of the additions.
+    """
+    import dask.array as da
+
+    x = field.array[h]
+    x = x.rechunk((x.chunks[0], -1))  # chunks along trajectories only
+    K, d = x.shape
+    cols = [np.asarray(c, dtype=np.float64) for c in cols]
+    widths = [1 if c.ndim == 1 else int(np.prod(c.shape[1:])) for c in cols]
+    m = sum(widths)
+    y = np.empty((K, m + (0 if weights is None else 1)))
+    if m:
+        y[:, :m] = np.column_stack([c.reshape(K, -1) for c in cols])
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        y[:, :m] *= w[:, None]
+        y[:, m] = w
+    g = d if with_gram else 0
+    width = g + m
+
+    def block(xb, yb):
+        xb = np.asarray(xb, dtype=np.float64)
+        out = np.empty((d, width))
+        if with_gram:
+            xw = xb if weights is None else xb * yb[:, m:]
+            out[:, :d] = xw.T @ xb
+        out[:, g:] = xb.T @ yb[:, :m]
+        return out.reshape(1, d * width)
+
+    nb = len(x.chunks[0])
+    parts = da.map_blocks(block, x, da.from_array(y, chunks=(x.chunks[0], -1)),
+                          chunks=((1,) * nb, (d * width,)), dtype=np.float64)
+    total = np.asarray(parts.sum(axis=0).compute(), dtype=np.float64).reshape(d, width)
+    gram = total[:, :d].copy() if with_gram else None
+    out, at = [], g
+    for c, k in zip(cols, widths, strict=True):
+        piece = total[:, at:at + k]
+        out.append(piece[:, 0].copy() if c.ndim == 1 else piece.reshape((d,) + c.shape[1:]))
+        at += k
+    return gram, out
+
+
 def _as_float64(a):
     if a is None:
         return None
@@ -788,6 +836,32 @@ class StepSource:
                 np.copyto(f64[: e - s], rows)
                 rows = f64[: e - s]
             yield s, e, rows
+
+    def remote_products(self, h: int, cols, weights=None, with_gram: bool = True):
+        """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` formed where the data
+        is (the Dask workers) for features held as Dask arrays; None for data the client
+        reads itself (memory, files, computed features), which the engine sums by chunk."""
+        if not isinstance(self.phi, DaskField):
+            return None
+        return _dask_products(self.phi, h, cols, weights, with_gram)
+
+    def phi_times(self, h: int, z: np.ndarray) -> np.ndarray:
+        """``Phi_h @ z`` (``(K,)`` or ``(K, m)``, float64): in memory one product, on disk by
+        chunk, for Dask arrays on the workers (one task per trajectory chunk)."""
+        field = self.phi
+        if isinstance(field, DaskField):
+            x = field.array[h]
+            x = x.rechunk((x.chunks[0], -1))
+            out = x.map_blocks(lambda b: np.asarray(b, dtype=np.float64) @ z,
+                               chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
+                               drop_axis=None if z.ndim == 2 else 1)
+            return np.asarray(out.compute(), dtype=np.float64)
+        if isinstance(field, ArrayField) and field.dtype == np.float64:
+            return field.read(h) @ z
+        out = np.empty((self.n_trajectories,) + z.shape[1:])
+        for s, e, rows in self.phi_chunks(h):
+            out[s:e] = rows @ z
+        return out
 
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
