@@ -288,3 +288,15 @@ def test_table_datasets_keep_private_extras_and_validate_without_simplex_checks(
     with pytest.raises(ValueError, match=r"actions must lie in \[0, 2\)"):
         OfflineDataset.from_next_state_table(table[s, a], np.zeros((K, H)), ns_sm.T, table,
                                              actions=a + 1)
+
+
+def test_save_matches_after_the_cast_to_float32(forms, tmp_path):
+    """float64 trajectories saved as float32: rows are compared after the cast, as stored."""
+    ds = OfflineDataset.open(forms["episodes"][0])
+    assert ds.dtype == np.float64
+    full = OfflineDataset.open(ds.save(tmp_path / "f", dtype="float32"))
+    beh = OfflineDataset.open(ds.save(tmp_path / "b", dtype="float32", next_form="behaviour"))
+    assert beh.dtype == np.float32 and same_bits(beh.next_phi, full.next_phi)
+    n_side = json.loads((tmp_path / "b" / "manifest.json").read_text())["next_behaviour"]
+    assert n_side["n_side"] < 0.5 * H * ds.n_trajectories
+    assert_bitwise_fit(ESTIMATORS["KL"]().fit(beh), ESTIMATORS["KL"]().fit(full))
