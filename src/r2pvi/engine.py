@@ -369,9 +369,9 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         # Phi^T W 1 when a rule asked for E(1) (with_total_weights: KL), in the same pass as
         # its regression; not for rules that never use it (one more matrix-vector product per
         # chunk, measured 2-5% of a TV fit in memory).
-        sums = np.zeros(d) if self._sums is None and self._want_sums else None
+        colsum = np.zeros(d) if self._sums is None and self._want_sums else None
         cols = ([] if y is None else [y]) + self._pending
-        if not cols and self._factor is not None and sums is None:
+        if not cols and self._factor is not None and colsum is None:
             return None
         cols = [np.asarray(c, dtype=float) for c in cols]
         if self._rows is not None:  # the rows are in memory: no read
@@ -385,15 +385,27 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         gram = np.zeros((d, d)) if self._factor is None else None
         acc = [np.zeros((d,) + c.shape[1:]) for c in cols]
         w = self.weights
+        # Dask arrays: the products are summed on the workers (the column sums as the product
+        # with a column of ones); otherwise here, by chunk.
+        remote = self.source.remote_products(
+            self.h, cols + ([] if colsum is None else [np.ones(self.n_points)]), w,
+            gram is not None)
+        if remote is not None:
+            if gram is not None:
+                gram += remote[0]
+            if colsum is not None:
+                colsum += remote[1].pop()
+            for a, r in zip(acc, remote[1], strict=True):
+                a += r
         ones = np.ones(0)
-        for s, e, rows in self.source.phi_chunks(self.h):
+        for s, e, rows in (() if remote is not None else self.source.phi_chunks(self.h)):
             if gram is not None:
                 xw = rows if w is None else rows * w[s:e, None]
                 gram += xw.T @ rows  # a symmetric rank-k update when unweighted
-            if sums is not None:
+            if colsum is not None:
                 if w is None and ones.size < e - s:
                     ones = np.ones(e - s)
-                sums += (ones[: e - s] if w is None else w[s:e]) @ rows
+                colsum += (ones[: e - s] if w is None else w[s:e]) @ rows
             for a, c in zip(acc, cols, strict=True):
                 if w is None and c.ndim == 1:
                     a += c[s:e] @ rows
@@ -402,10 +414,10 @@ class ChunkedRidgeExpectation(RidgeExpectation):
                 else:
                     a += rows.T @ (c[s:e].T * w[s:e]).T
         self.passes += 1
-        if sums is not None:
-            self._sums = sums
+        if colsum is not None:
+            self._sums = colsum
             if w is None:
-                self.source.remember_phi_sums(self.h, sums)
+                self.source.remember_phi_sums(self.h, colsum)
         if gram is not None:
             if w is None:
                 self.source.remember_gram(self.h, gram)
