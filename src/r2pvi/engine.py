@@ -232,8 +232,10 @@ class ChunkedRidgeExpectation(RidgeExpectation):
     Nothing of the step's features is held: each call reads them once, a chunk at a time
     (``source.phi_chunks``); the first call also forms ``Lambda`` in the same pass, and the
     columns registered with :meth:`include` ride along with it (the engine registers the
-    rewards and the value moments, so a TV or PEVI step reads its features once). The
-    primal (d x d) factor only, for dense features.
+    rewards and the value moments, so a TV or PEVI step reads its features once). ``E(1)``
+    (:meth:`total_weights`, :meth:`with_total_weights`: KL) is ``Lambda^{-1}`` of the column
+    sums ``Phi^T W 1``, stored with the data or accumulated with the rule's regression in
+    the same read. The primal (d x d) factor only, for dense features.
 
     Rules that need more than ``E(y)`` (explicit weight rows or columns, sorted blocks,
     truncation cumulants: chi^2, DRPVI, DRVI-L, KL's exact fallback for tiny moments) reach
@@ -337,7 +339,7 @@ class ChunkedRidgeExpectation(RidgeExpectation):
 
     # ------------------------------------------------------------------ the operator
     def apply_pair(self, y1: np.ndarray, y2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(E(y1), E(y2))`` in one read of the step's features (KL's two regressions)."""
+        """``(E(y1), E(y2))`` in one read of the step's features."""
         if self._rows is not None:
             return super().apply_pair(y1, y2)
         for y in (y1, y2):
