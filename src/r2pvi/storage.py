@@ -727,8 +727,8 @@ def _prefetched(field: FileField, h, n, chunk, shape):
         start = base + ws * row
         off = start % mmap.ALLOCATIONGRANULARITY
         try:
-            mm = mmap.mmap(fd, (we - ws) * row + off, flags=mmap.MAP_SHARED,
-                           prot=mmap.PROT_READ, offset=start - off)
+            mm = mmap.mmap(fd, (we - ws) * row + off, access=mmap.ACCESS_READ,
+                           offset=start - off)
         except (OSError, ValueError):  # not mappable (e.g. some network file systems)
             yield from _pread_chunks(field, h, ws, n, chunk, f64)
             return
