@@ -367,7 +367,19 @@ class _KLProblem:
         # derivatives, known from the grid), a far better start than Newton from one end.
         first = _hermite_argmax(lo, hi, g[r, k_lo], dg[r, k_lo], d2g[r, k_lo], g[r, k_hi],
                                 dg[r, k_hi], d2g[r, k_hi])
-        first = self._refine_locally(first, lo, hi, best, tgrid[0], tgrid[-1])
+        series = np.zeros(first.size, dtype=bool)
+        if self._series_possible():
+            # Factors starting in the shifted regime (b < scale): Taylor moments at a few
+            # shared nodes covering their first steps; every Newton evaluation near a node is
+            # then a short series (no pass over the points).
+            start = np.where(np.isnan(first), 0.5 * (lo + hi), first)
+            series = start < np.log(self.scale)
+            self._t_range = (float(tgrid[0]), float(tgrid[-1]))
+            self._series_cover(start[series], best)
+        if not series.all():  # the others: a local grid of exact evaluations
+            local = self._refine_locally(np.where(series, np.nan, first), lo, hi, best,
+                                         tgrid[0], tgrid[-1])
+            first = np.where(series, first, local)
         ftol = _FTOL * self.scale
         for it in range(max_iter):
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -413,10 +425,7 @@ class _KLProblem:
         if count > _LOCAL_MAX:
             return first
         nodes = np.linspace(t_lo, t_hi, count)
-        if self._series_applies(nodes):
-            g, dg, d2g = self._series_grid(nodes)
-        else:
-            g, dg, d2g = self.on_grid(np.exp(nodes))
+        g, dg, d2g = self.on_grid(np.exp(nodes))
         np.maximum(best, g.max(axis=1), out=best)
         j = np.clip(np.searchsorted(nodes, np.where(valid, first, t_lo)) - 1, 0, count - 2)
         r = np.arange(first.size)
@@ -484,22 +493,25 @@ class _KLProblem:
 
     def per_factor(self, idx, b):
         """Objective and t-derivatives of factors ``idx`` (positions in ``dims``), each at its
-        own ``b``: from the Taylor moments of the nearest local node where one is within
-        ``_SERIES_RADIUS`` (:meth:`_series_at`, no pass over the points), else exactly
-        (:meth:`_per_factor_exact`)."""
+        own ``b``: in the shifted regime (``b < scale``) from the Taylor moments of a node
+        within ``_SERIES_RADIUS`` (:meth:`_series_at`; nodes are added where none is), else
+        exactly (:meth:`_per_factor_exact`)."""
         if self._series is None:
             return self._per_factor_exact(idx, b)
         t = np.log(b)
-        nodes = self._series[0]
-        j = np.clip(np.searchsorted(nodes, t), 1, nodes.size - 1)
-        j = np.where(t - nodes[j - 1] <= nodes[j] - t, j - 1, j)  # the nearest node
-        near = np.abs(t - nodes[j]) <= _SERIES_RADIUS
-        if near.all():
+        eligible = t < np.log(self.scale)
+        j, near = self._nearest_node(t)
+        missing = eligible & ~near
+        if missing.any():
+            self._series_cover(t[missing], None)
+            j, near = self._nearest_node(t)
+        use = eligible & near
+        if use.all():
             return self._series_at(idx, b, j)
         out = tuple(np.empty(idx.size) for _ in range(3))
-        for sel, fn in ((near, self._series_at), (~near, None)):
+        for sel, series in ((use, True), (~use, False)):
             if sel.any():
-                res = (fn(idx[sel], b[sel], j[sel]) if fn is not None
+                res = (self._series_at(idx[sel], b[sel], j[sel]) if series
                        else self._per_factor_exact(idx[sel], b[sel]))
                 for o, r in zip(out, res, strict=True):
                     o[sel] = r
@@ -590,16 +602,45 @@ class _KLProblem:
         return np.stack([np.einsum("jn,jn->j", w, zs[k * m:(k + 1) * m]) for k in range(3)])
 
     # ------------------------------------------------------------------ Taylor moments
-    def _series_applies(self, nodes) -> bool:
-        """Whether the local nodes can carry Taylor moments: one shift shared by all factors
-        (``y = V - shift >= 0`` at every point) and every ``b`` within ``_SERIES_RADIUS`` of a
-        node in the shifted regime (``b < scale``), where :meth:`_per_factor_exact` uses the
-        same formulas."""
-        return (self.shared_shift and not self._y_negative
-                and float(nodes[-1]) + _SERIES_RADIUS < np.log(self.scale))
+    def _series_possible(self) -> bool:
+        """Whether Taylor moments apply: one shift shared by all factors, ``y = V - shift >= 0``
+        at every point (ridge operators; distributions with a common support minimum)."""
+        return self.shared_shift and not self._y_negative
+
+    def _nearest_node(self, t):
+        """Index of the node nearest to each ``t`` and whether it is within the radius."""
+        nodes = self._series[0]
+        if nodes.size == 1:
+            j = np.zeros(t.size, dtype=np.intp)
+        else:
+            j = np.clip(np.searchsorted(nodes, t), 1, nodes.size - 1)
+            j = np.where(t - nodes[j - 1] <= nodes[j] - t, j - 1, j)
+        return j, np.abs(t - nodes[j]) <= _SERIES_RADIUS
+
+    def _series_cover(self, ts, best):
+        """Add nodes (within the searched range of log b) so that every ``ts`` is within
+        ``_SERIES_RADIUS`` of one: greedily, the least uncovered point and those up to two
+        radii above it share a node at the middle of their range (the Newton steps that
+        follow stay near these points). ``best`` (if given) takes the objective at the new
+        nodes (exact values, as every evaluation)."""
+        pts = np.sort(ts[np.isfinite(ts)])
+        t_min, t_max = self._t_range
+        new = []
+        i = 0
+        reach = 1.998 * _SERIES_RADIUS  # margin for the rounding of t - node
+        while i < pts.size:
+            last = int(np.searchsorted(pts, pts[i] + reach, side="right"))
+            node = 0.5 * (float(pts[i]) + float(pts[last - 1]))
+            new.append(min(max(node, t_min), t_max))
+            i = last
+        if not new:
+            return
+        g = self._series_grid(np.array(new))[0]
+        if best is not None:
+            np.maximum(best, g.max(axis=1), out=best)
 
     def _series_grid(self, nodes):
-        """Objective and t-derivatives at the nodes (as :meth:`on_grid`), keeping the moments
+        """Objective and t-derivatives at new nodes (as :meth:`on_grid`), keeping the moments
         ``E_i[C_k]``, ``C_k = (y/b)^k / k! exp(-y/b)``, ``k = 0 .. _SERIES_ORDER + 2``, of
         every node ``b``: one exponential per point and node, the powers by products, one
         operator call for all columns. :meth:`_series_at` then evaluates any factor at any
@@ -619,7 +660,14 @@ class _KLProblem:
         mom = self.E(cols.reshape(bs.size * ncol, n).T)[self.dims]
         mom /= self.norm[:, None]
         mom = mom.reshape(self.dims.size, bs.size, ncol)
-        self._series = (nodes, bs, mom)
+        if self._series is not None and self._series[0].size:
+            old_nodes, old_bs, old_mom = self._series
+            nodes = np.concatenate([old_nodes, nodes])
+            order = np.argsort(nodes, kind="stable")
+            self._series = (nodes[order], np.concatenate([old_bs, bs])[order],
+                            np.concatenate([old_mom, mom], axis=1)[:, order])
+        else:
+            self._series = (nodes, bs, mom)
         x0, x1, x2 = mom[:, :, 0], mom[:, :, 1] * bs, 2.0 * mom[:, :, 2] * (bs * bs)
         return self._shifted(x0, x1, x2, self.shift[:, None], bs[None, :], self.c[:, None],
                              self.rho[:, None], self.cap[:, None])
@@ -768,8 +816,8 @@ def _series_moments(mom, b0, b):
     return x0, x1, x2
 
 
-_SERIES_ORDER = 14  # Taylor terms k = 0 .. 14 of exp(-y/b) around a local node (X_0)
-_SERIES_RADIUS = 0.075  # the series serves |log b - log b_node| <= this (nodes 0.1 apart)
+_SERIES_ORDER = 22  # Taylor terms k = 0 .. 17 of exp(-y/b) around a node (X_0)
+_SERIES_RADIUS = 0.15  # the series serves |log b - log b_node| <= this
 
 
 # ---------------------------------------------------------------------------------- chi^2 ball
