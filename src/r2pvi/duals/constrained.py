@@ -436,55 +436,69 @@ class _KLProblem:
 
     # ------------------------------------------------------------------ moments
     def on_grid(self, bs):
-        """Objective and its t-derivatives at every grid ``b`` for every factor: (m, J) each."""
+        """Objective and its t-derivatives at every grid ``b`` for every factor: (m, J) each.
+
+        The transformed values of all grid points go to the operator in one call (one pass
+        over the points' features), except for factors with different shifts (explicit rows).
+        """
         out = [np.empty((self.dims.size, bs.size)) for _ in range(3)]
         plain = bs >= self.scale
         n = self.v.size
-        if plain.any():
-            b = bs[plain]
-            j = b.size
-            # Transformed values as rows (3 j, n), contiguous for the element-wise passes; the
-            # operator takes their transpose.
-            y = buffer("klball.grid", (3, j, n))
-            e1 = np.multiply.outer(-1.0 / b, self.v, out=y[0])
-            ex = np.exp(e1, out=y[1])
-            # exp(-V/b) - 1: ex - 1 carries ex's rounding (<= 2^-53), which moves G = -b log u
-            # by about b 2^-53 sum |M_i| (< 1e-14 of the values for b <= 64 max |V|); expm1,
-            # exact to the last digit, for larger b (the grid is increasing).
-            big = int(np.searchsorted(b, _EXPM1_FROM * self.scale, side="right"))
-            np.expm1(e1[big:], out=e1[big:])
-            np.subtract(ex[:big], 1.0, out=e1[:big])
-            ex *= self.v
-            np.multiply(ex, self.v, out=y[2])
-            mom = self.E(y.reshape(3 * j, n).T)[self.dims]
+        shifted_rows = (~plain).any() and not self.shared_shift
+        sel = plain if shifted_rows else np.ones(bs.size, dtype=bool)
+        j_all = int(sel.sum())
+        if j_all:
+            # Transformed values as rows (3, J, n), contiguous for the element-wise passes;
+            # the operator takes their transpose (one call for all columns).
+            y = buffer("klball.grid", (3, j_all, n))
+            jp = int(plain.sum())
+            js = j_all - jp
+            s_idx = np.flatnonzero(~plain)  # shifted grid points: the first columns
+            if js:
+                b = bs[s_idx]
+                ys = self._y_shared
+                np.multiply.outer(-1.0 / b, np.maximum(ys, 0.0), out=y[0, :js])
+                np.exp(y[0, :js], out=y[0, :js])
+                np.multiply(y[0, :js], ys, out=y[1, :js])
+                np.multiply(y[1, :js], ys, out=y[2, :js])
+            if jp:
+                b = bs[plain]
+                e1 = np.multiply.outer(-1.0 / b, self.v, out=y[0, js:])
+                ex = np.exp(e1, out=y[1, js:])
+                # exp(-V/b) - 1: ex - 1 carries ex's rounding (<= 2^-53), which moves
+                # G = -b log u by about b 2^-53 sum |M_i| (< 1e-14 of the values for
+                # b <= 64 max |V|); expm1, exact to the last digit, for larger b.
+                big = int(np.searchsorted(b, _EXPM1_FROM * self.scale, side="right"))
+                np.expm1(e1[big:], out=e1[big:])
+                np.subtract(ex[:big], 1.0, out=e1[:big])
+                ex *= self.v
+                np.multiply(ex, self.v, out=y[2, js:])
+            mom = self.E(y.reshape(3 * j_all, n).T)[self.dims]
             mom /= self.norm[:, None]
-            res = self._plain(mom[:, :j], mom[:, j:2 * j], mom[:, 2 * j:], b[None, :],
-                              self.base[:, None], self.rho[:, None], self.cap[:, None])
-            for o, val in zip(out, res, strict=True):
-                o[:, plain] = val
-        if (~plain).any():
+            mom = mom.reshape(self.dims.size, 3, j_all)
+            if jp:
+                res = self._plain(mom[:, 0, js:], mom[:, 1, js:], mom[:, 2, js:], b[None, :],
+                                  self.base[:, None], self.rho[:, None], self.cap[:, None])
+                for o, val in zip(out, res, strict=True):
+                    o[:, plain] = val
+            if js:
+                res = self._shifted(mom[:, 0, :js], mom[:, 1, :js], mom[:, 2, :js],
+                                    self.shift[:, None], bs[None, s_idx], self.c[:, None],
+                                    self.rho[:, None], self.cap[:, None])
+                for o, val in zip(out, res, strict=True):
+                    o[:, s_idx] = val
+        if shifted_rows:
+            # non-negative operator whose factors see different minima: explicit rows
+            # (self.rows is set for non-negative operators)
             b = bs[~plain]
-            j = b.size
-            if self.shared_shift:
-                y = self.v - self.shift[0]
-                z = buffer("klball.grid", (3, j, n))
-                np.multiply.outer(-1.0 / b, np.maximum(y, 0.0), out=z[0])
-                np.exp(z[0], out=z[0])
-                np.multiply(z[0], y, out=z[1])
-                np.multiply(z[1], y, out=z[2])
-                mom = self.E(z.reshape(3 * j, n).T)[self.dims]
-                mom /= self.norm[:, None]
-                x0, x1, x2 = mom[:, :j], mom[:, j:2 * j], mom[:, 2 * j:]
-            else:  # non-negative operator whose factors see different minima: explicit rows
-                # (self.rows is set for non-negative operators)
-                y = np.maximum(self.v[None, :] - self.shift[:, None], 0.0)  # (m, n)
-                z = np.exp(-y[:, None, :] / b[None, :, None])  # (m, J, n)
-                x0 = np.einsum("in,ijn->ij", self.rows, z)
-                z *= y[:, None, :]
-                x1 = np.einsum("in,ijn->ij", self.rows, z)
-                z *= y[:, None, :]
-                x2 = np.einsum("in,ijn->ij", self.rows, z)
-                x0, x1, x2 = (x / self.norm[:, None] for x in (x0, x1, x2))
+            y = np.maximum(self.v[None, :] - self.shift[:, None], 0.0)  # (m, n)
+            z = np.exp(-y[:, None, :] / b[None, :, None])  # (m, J, n)
+            x0 = np.einsum("in,ijn->ij", self.rows, z)
+            z *= y[:, None, :]
+            x1 = np.einsum("in,ijn->ij", self.rows, z)
+            z *= y[:, None, :]
+            x2 = np.einsum("in,ijn->ij", self.rows, z)
+            x0, x1, x2 = (x / self.norm[:, None] for x in (x0, x1, x2))
             res = self._shifted(x0, x1, x2, self.shift[:, None], b[None, :], self.c[:, None],
                                 self.rho[:, None], self.cap[:, None])
             for o, val in zip(out, res, strict=True):
