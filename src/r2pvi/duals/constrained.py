@@ -712,6 +712,16 @@ class _KLProblem:
         ``u = exp(-m/b) X_0 + c``."""
         with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
             pos = x0 > 0
+            if pos.all() and (c > 0).all():  # the usual case, without the masks (same values)
+                q = x1 / x0
+                var = x2 / x0 - q * q
+                log_p = -m / b + np.log(x0)
+                log_u = np.logaddexp(log_p, np.log(c))
+                frac = np.exp(log_p - log_u)
+                mean = m + q
+                t1 = frac * mean / b
+                b3g2 = -frac * (var + (1.0 - frac) * mean * mean)
+                return self._finish(log_u, t1, b3g2, b, rho, cap)
             log_x = np.log(np.where(pos, x0, 1.0))
             q = np.where(x0 != 0, x1 / x0, 0.0)  # tilted mean of y
             var = np.where(x0 != 0, x2 / x0, 0.0) - q * q  # tilted variance
@@ -739,14 +749,16 @@ class _KLProblem:
         b = np.broadcast_to(b, log_u.shape)
         log_lo = -cap / b
         low = ~(log_u >= log_lo)  # NaN/-inf too
-        log_u = np.where(low, log_lo, log_u)
-        t1 = np.where(low, -log_lo, t1)
-        b3g2 = np.where(low, 0.0, b3g2)
+        if low.any():
+            log_u = np.where(low, log_lo, log_u)
+            t1 = np.where(low, -log_lo, t1)
+            b3g2 = np.where(low, 0.0, b3g2)
         if self.centered:
             high = log_u > 0.0
-            log_u = np.where(high, 0.0, log_u)
-            t1 = np.where(high, 0.0, t1)
-            b3g2 = np.where(high, 0.0, b3g2)
+            if high.any():
+                log_u = np.where(high, 0.0, log_u)
+                t1 = np.where(high, 0.0, t1)
+                b3g2 = np.where(high, 0.0, b3g2)
         gp = -log_u - t1 - rho  # dg/db
         g = -b * (log_u + rho)
         d1 = b * gp
@@ -773,14 +785,23 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
         c5 = 6.0 * a - 3.0 * b + 0.5 * c
         # Newton on p'(s) = 0 from the end with the larger value, kept in [0, 1].
         s = np.where(g1 > g0, 1.0, 0.0)
-        for _ in range(iters):
+        s_prev = np.full_like(s, np.nan)
+        for it in range(iters):
             p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
             p2 = 2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))
             s_new = np.clip(s - p1 / np.where(p2 < 0, p2, -np.inf), 0.0, 1.0)
-            if np.all(np.abs(s_new - s) <= 1e-13):
+            moved = np.abs(s_new - s) > 1e-13
+            if not moved.any():
                 s = s_new
                 break
-            s = s_new
+            # A row back where it was two steps ago cycles for good (the map is fixed): stop
+            # iterating once every moving row cycles, each at the point the full count of
+            # iterations would reach (the cycle's parity).
+            cycling = moved & (s_new == s_prev)
+            if np.array_equal(cycling, moved):
+                s = np.where(cycling & ((iters - 1 - it) % 2 == 1), s, s_new)
+                break
+            s_prev, s = s, s_new
         p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
         good = (h > 0) & (s > 0.0) & (s < 1.0) & np.isfinite(s) & np.isfinite(
             g0 + g1 + d0 + d1 + dd0 + dd1) & (np.abs(p1) <= 1e-6 * (np.abs(c1) + np.abs(h * d1)))
@@ -820,18 +841,20 @@ def _series_moments(mom, b0, b):
     """
     n = _SERIES_ORDER + 1
     beta = b0 / b - 1.0
-    powers = np.multiply.accumulate(
-        np.concatenate([np.ones((beta.size, 1)), np.repeat(-beta[:, None], n - 1, axis=1)],
-                       axis=1), axis=1)  # (-beta)^k, k = 0 .. N
-    k1 = np.arange(1.0, n + 1.0)
+    powers = np.empty((beta.size, n))
+    powers[:, 0] = 1.0
+    powers[:, 1:] = -beta[:, None]
+    np.multiply.accumulate(powers, axis=1, out=powers)  # (-beta)^k, k = 0 .. N
     x0 = np.einsum("ik,ik->i", powers, mom[:, :n])
-    x1 = b0 * np.einsum("ik,ik->i", powers * k1, mom[:, 1:n + 1])
-    x2 = (b0 * b0) * np.einsum("ik,ik->i", powers * (k1 * (k1 + 1.0)), mom[:, 2:n + 2])
+    x1 = b0 * np.einsum("ik,ik->i", powers * _K1, mom[:, 1:n + 1])
+    x2 = (b0 * b0) * np.einsum("ik,ik->i", powers * _K12, mom[:, 2:n + 2])
     return x0, x1, x2
 
 
 _SERIES_ORDER = 22  # Taylor terms k = 0 .. 17 of exp(-y/b) around a node (X_0)
 _SERIES_RADIUS = 0.15  # the series serves |log b - log b_node| <= this
+_K1 = np.arange(1.0, _SERIES_ORDER + 2.0)  # k + 1, k = 0 .. N
+_K12 = _K1 * (_K1 + 1.0)  # (k + 1)(k + 2)
 
 
 # ---------------------------------------------------------------------------------- chi^2 ball
