@@ -14,6 +14,8 @@ A radius ``rho_i = 0`` makes the ball ``{mu0_i}``: the result is then the plain 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ._scratch import buffer
@@ -660,8 +662,9 @@ class _KLProblem:
         operator call for all columns. :meth:`_series_at` then evaluates any factor at any
         ``b'`` near a node without a pass over the points (:func:`_series_moments`)."""
         bs = np.exp(nodes)
-        n, ncol = self.v.size, _SERIES_ORDER + 3
         y = self._y_shared
+        order = _series_order(float(np.max(y)) / float(bs.min()))
+        n, ncol = self.v.size, order + 3
         cols = buffer("klball.series", (bs.size, ncol, n))
         k = np.arange(1, ncol)
         for j, b in enumerate(bs):
@@ -671,9 +674,11 @@ class _KLProblem:
             np.multiply.outer(1.0 / (b * k), y, out=c[1:])  # y / (k b)
             for i in k:  # C_k = C_{k-1} y / (k b) (a loop of rows: accumulate is 6x slower)
                 np.multiply(c[i], c[i - 1], out=c[i])
+        full = np.zeros((self.dims.size, bs.size, _SERIES_ORDER + 3))  # higher terms: 0
         mom = self.E(cols.reshape(bs.size * ncol, n).T)[self.dims]
         mom /= self.norm[:, None]
-        mom = mom.reshape(self.dims.size, bs.size, ncol)
+        full[:, :, :ncol] = mom.reshape(self.dims.size, bs.size, ncol)
+        mom = full
         if self._series is not None and self._series[0].size:
             old_nodes, old_bs, old_mom = self._series
             nodes = np.concatenate([old_nodes, nodes])
@@ -826,6 +831,21 @@ def _log_grid(lo_b, hi_b, scale):
     return np.concatenate([coarse[:-1], fine])
 
 
+def _series_order(x_max: float) -> int:
+    """The least order N <= _SERIES_ORDER whose truncation bound (see
+    :func:`_series_moments`) is below ``_SERIES_TOL`` for ``|log(b/b0)| <= _SERIES_RADIUS``,
+    given ``x = y/b0 <= x_max``: the lesser of ``(x_max q)^(N+1) / (N+1)!`` and
+    ``(q/(1-q))^(N+1) / sqrt(2 pi (N+1))``, ``q = e^R - 1``; ``_SERIES_ORDER`` meets the second
+    for any ``x``."""
+    q = math.expm1(_SERIES_RADIUS)
+    log_tol = math.log(_SERIES_TOL)
+    for order in range(_SERIES_ORDER):
+        k = order + 1
+        if x_max * q == 0 or k * math.log(x_max * q) - math.lgamma(k + 1) <= log_tol:
+            return order
+    return _SERIES_ORDER
+
+
 def _series_moments(mom, b0, b):
     """``X_k = E[y^k exp(-y/b)]``, k = 0, 1, 2, from the moments ``mom[:, k] = E[C_k]``,
     ``C_k = (y/b0)^k / k! exp(-y/b0)`` of a node ``b0`` (one row per factor):
@@ -851,7 +871,8 @@ def _series_moments(mom, b0, b):
     return x0, x1, x2
 
 
-_SERIES_ORDER = 22  # Taylor terms k = 0 .. 17 of exp(-y/b) around a node (X_0)
+_SERIES_ORDER = 22  # at most the Taylor terms k = 0 .. 22 of exp(-y/b) around a node (X_0)
+_SERIES_TOL = 1e-17  # truncation bound per unit of |weight| (below an ulp of the values)
 _SERIES_RADIUS = 0.15  # the series serves |log b - log b_node| <= this
 _K1 = np.arange(1.0, _SERIES_ORDER + 2.0)  # k + 1, k = 0 .. N
 _K12 = _K1 * (_K1 + 1.0)  # (k + 1)(k + 2)
