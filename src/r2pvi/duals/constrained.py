@@ -326,14 +326,15 @@ class _KLProblem:
         if self.shared_shift:
             self._y_shared = v - self.shift[0]
             self._y_negative = bool(np.any(self._y_shared < 0))
-        row_sums = E(np.ones_like(v))[dims]
         # Distributions (non-negative rows): normalize by the row sums, exact up to rounding,
         # so that u -> 1 as b -> inf exactly. Otherwise u_i = E_i[exp(-V/b)] + c_i with
-        # c_i = 1 - E_i(1) for the centered estimate (E_i[exp(-V/b) - 1] + 1) and 0 if not.
-        self.norm = row_sums if E.nonnegative else np.ones(dims.size)
-        self.c = 1.0 - row_sums if self.centered and not E.nonnegative else np.zeros(dims.size)
-        plain_base = E.nonnegative or self.centered
-        self.base = np.ones(dims.size) if plain_base else row_sums
+        # c_i = 1 - E_i(1) for the centered estimate (E_i[exp(-V/b) - 1] + 1) and 0 if not;
+        # then E(1) comes with the first grid (one pass over the points less).
+        self.c = self.base = None
+        if E.nonnegative:
+            self._set_row_sums(E(np.ones_like(v))[dims])
+        else:
+            self.norm = np.ones(dims.size)
         # Jensen's floor of log u: -m_i / b, m_i the plain estimate (per unit of row mass).
         self.cap = cap[dims] / self.norm
         if E.nonnegative:
@@ -350,6 +351,15 @@ class _KLProblem:
         spread = max(float(np.max(v)) - min(0.0, lowest), 1e-12 * self.scale)
         with np.errstate(divide="ignore", over="ignore"):
             self.b_hi = np.minimum(2.0 * spread / self.rho, _B_CAP * self.scale)
+
+    def _set_row_sums(self, row_sums):
+        """``norm``, ``c`` and ``base`` from the row sums ``E_i(1)`` (see ``__init__``)."""
+        m = self.dims.size
+        nonneg = self.E.nonnegative
+        if nonneg:
+            self.norm = row_sums
+        self.c = 1.0 - row_sums if self.centered and not nonneg else np.zeros(m)
+        self.base = np.ones(m) if (nonneg or self.centered) else row_sums
 
     # ------------------------------------------------------------------ solver
     def solve(self, b_min, xtol, max_iter):
@@ -452,7 +462,11 @@ class _KLProblem:
         if j_all:
             # Transformed values as rows (3, J, n), contiguous for the element-wise passes;
             # the operator takes their transpose (one call for all columns).
-            y = buffer("klball.grid", (3, j_all, n))
+            ones = self.c is None  # E(1) in the same call
+            buf = buffer("klball.grid", (3 * j_all + ones, n))
+            if ones:
+                buf[-1] = 1.0
+            y = buf[:3 * j_all].reshape(3, j_all, n)
             jp = int(plain.sum())
             js = j_all - jp
             s_idx = np.flatnonzero(~plain)  # shifted grid points: the first columns
@@ -475,7 +489,10 @@ class _KLProblem:
                 np.subtract(ex[:big], 1.0, out=e1[:big])
                 ex *= self.v
                 np.multiply(ex, self.v, out=y[2, js:])
-            mom = self.E(y.reshape(3 * j_all, n).T)[self.dims]
+            mom = self.E(buf.T)[self.dims]
+            if ones:
+                self._set_row_sums(mom[:, -1].copy())
+                mom = mom[:, :-1]
             mom /= self.norm[:, None]
             mom = mom.reshape(self.dims.size, 3, j_all)
             if jp:
