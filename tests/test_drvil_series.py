@@ -65,12 +65,14 @@ def test_series_evaluation_equals_the_exact_evaluation(case, log_rho, log_b, see
         return
     rng = np.random.default_rng(seed)
     t0 = math.log(scale) + log_b
-    prob._t_range = (t0 - 3.0, t0 + 3.0)
+    prob._t_range = (t0 - 3.0, t0 + 16.0)
     d = E.n_dims
     prob._series_cover(np.array([t0]), None)
     idx = np.arange(d)
     # within the node's radius, on both sides, and far from it (new nodes or exact)
-    for offset in (0.0, C._SERIES_RADIUS, -C._SERIES_RADIUS, 0.5 * C._SERIES_RADIUS, 0.7, -1.3):
+    # b >> max|V| (offset 14) takes the exact form, accurate for large b
+    for offset in (0.0, C._SERIES_RADIUS, -C._SERIES_RADIUS, 0.5 * C._SERIES_RADIUS, 0.7, -1.3,
+                   14.0):
         b = np.exp(t0 + offset + 1e-3 * rng.uniform(-1, 1, size=d) * (abs(offset) < 0.5))
         got = prob.per_factor(idx, b)
         want = prob._per_factor_exact(idx, b)
@@ -132,9 +134,10 @@ def test_kl_ball_with_series_equals_the_exact_solver(seed, n, d, log_rho, scale)
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * scale)
 
 
-def test_kl_ball_series_on_the_issue_mdps_factors_and_distributions(monkeypatch):
-    """Exact distributions: a shared support minimum takes the series, different minima
-    (y < 0 off a factor's support) the exact path; both as the reference."""
+def test_kl_ball_series_on_exact_distributions(monkeypatch):
+    """Exact distributions: a shared support minimum takes the series; different minima, or
+    a lowest value no factor reaches (y < 0 there: exp(-y/b) overflows at small b), the exact
+    path; all as the reference."""
     rng = np.random.default_rng(3)
     v = rng.uniform(0.0, 2.0, size=7)
     mu = rng.dirichlet(np.ones(7), size=3)
@@ -147,6 +150,51 @@ def test_kl_ball_series_on_the_issue_mdps_factors_and_distributions(monkeypatch)
             got = kl_constrained(E, v, rho)
             np.testing.assert_allclose(got, reference(monkeypatch, E, v, rho), rtol=1e-11,
                                        atol=1e-13)
+    unreached = np.append(v, -5e3)  # the lowest value, on no factor's support
+    E = FactorExpectation(np.hstack([mu, np.zeros((3, 1))]))
+    for rho in (0.05, 0.5):
+        got = kl_constrained(E, unreached, rho)
+        assert np.all(np.isfinite(got))
+        np.testing.assert_allclose(got, reference(monkeypatch, E, unreached, rho),
+                                   rtol=1e-11, atol=1e-13)
+
+
+def _shifted_reference(x0, x1, x2, m, b, c):
+    """log u, t1, b3g2 of ``_KLProblem._shifted`` by the masked formulas (any signs)."""
+    with np.errstate(all="ignore"):
+        pos = x0 > 0
+        q = np.where(x0 != 0, x1 / x0, 0.0)
+        var = np.where(x0 != 0, x2 / x0, 0.0) - q * q
+        p = x0 * np.exp(-m / b)
+        u = p + c
+        log_u = np.where(u > 0, np.log(np.where(u > 0, u, 1.0)), -np.inf)
+        frac = np.where(u != 0, p / u, 0.0)
+        mean = m + q
+        return log_u, frac * mean / b, -frac * (var + (1.0 - frac) * mean * mean), pos
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.booleans())
+def test_shifted_objective_without_masks_equals_the_masked_formulas(seed, negative_c):
+    """The usual case (every X_0 > 0, every c > 0) skips the masks; rows with c <= 0
+    (ridge rows summing to more than 1) must not."""
+    rng = np.random.default_rng(seed)
+    m = 12
+    x0 = rng.uniform(0.01, 2.0, m)
+    x1, x2 = x0 * rng.uniform(0.0, 1.0, m), x0 * rng.uniform(0.0, 1.0, m)
+    shift, b = rng.uniform(0.0, 1.0, m), rng.uniform(0.05, 2.0, m)
+    c = rng.uniform(-0.5, 0.9, m) if negative_c else rng.uniform(0.01, 0.9, m)
+    prob = C._KLProblem.__new__(C._KLProblem)
+    prob.centered = False
+
+    def finish(log_u, t1, b3g2, b, rho, cap):
+        return log_u, t1, b3g2
+
+    prob._finish = finish
+    got = prob._shifted(x0, x1, x2, shift, b, c, 0.0, 1.0)
+    want = _shifted_reference(x0, x1, x2, shift, b, c)
+    for g, w in zip(got, want[:3], strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-300)
 
 
 def _hermite_full(t0, t1, g0, d0, dd0, g1, d1, dd1, iters=12):
