@@ -220,10 +220,14 @@ def kl_constrained(
     The 1-D problem is solved in ``t = log b`` for all factors at once: the objective, its
     first and second derivatives on a log-spaced grid of ``b`` (one operator call for all
     factors) give each factor a bracket around its best grid point and, as a first guess,
-    the maximizer of the quintic through the bracket's ends, sharpened by a few more shared
-    evaluations around the guesses; a safeguarded Newton iteration (bisection when a step
-    leaves the bracket) refines it until its predicted gain is below 1e-14 of the values; the
-    best value seen is returned. Everything is computed in the log domain, shifted by the
+    the maximizer of the quintic through the bracket's ends; a safeguarded Newton iteration
+    (bisection when a step leaves the bracket) refines it until its predicted gain is below
+    1e-14 of the values; the best value seen is returned. The Newton steps need no pass over
+    the points: a few shared nodes near the guesses keep the moments ``E_i[(y/b0)^k / k!
+    exp(-y/b0)]`` (one operator call), from which a Taylor series in ``b0/b - 1`` gives any
+    factor's objective within ``|log(b/b0)| <= 0.15`` to 1e-17 per unit of weight, below the
+    rounding of a direct evaluation (where no node applies, as for ``b`` above the values'
+    scale, each factor is evaluated directly). Everything is computed in the log domain, shifted by the
     smallest value each factor can see, with ``expm1`` for large ``b``: finite and accurate
     for values from 0 to 1e6 and beyond and ``b`` from 1e-9 (relative to the values) to
     ``2 (max V - min V) / rho``. The grid is scaled by the values, never by a bound such as
@@ -871,10 +875,13 @@ def _series_moments(mom, b0, b):
     ``X_2 = b0^2 sum_k (k+1)(k+2) (-beta)^k E[C_{k+2}]``, ``k <= _SERIES_ORDER``.
 
     Truncation: per point of weight ``|w|`` and ``x = y/b0``, the remainder of ``X_0`` is at
-    most ``|w| exp(-x (1 - |beta|)) (x |beta|)^(N+1) / (N+1)! <= |w| (|beta| / (1 - |beta|))^(N+1)
-    / sqrt(2 pi (N+1))`` (Lagrange's remainder, then ``z^n e^-z / n! <= 1 / sqrt(2 pi n)``);
-    with ``|log(b/b0)| <= _SERIES_RADIUS = 0.075`` and ``N = 14``: ``< 1e-17 |w|``, below the
-    rounding of an exact evaluation (``X_1``, ``X_2``: ``< 1e-16 b0 |w|``, ``< 3e-15 b0^2 |w|``).
+    most ``|w| exp(-x (1 - |beta|)) (x |beta|)^(N+1) / (N+1)!`` (Lagrange's remainder), which
+    is at most ``|w| (x_max |beta|)^(N+1) / (N+1)!`` for ``x <= x_max`` and at most
+    ``|w| (|beta| / (1 - |beta|))^(N+1) / sqrt(2 pi (N+1))`` for any ``x`` (``z^n e^-z / n! <=
+    1 / sqrt(2 pi n)``). :func:`_series_order` takes the least N with one of them below
+    ``_SERIES_TOL = 1e-17`` for ``|log(b/b0)| <= _SERIES_RADIUS = 0.15`` (``|beta| <= e^0.15 -
+    1``); N = 22 suffices for any x. Columns above a node's order are 0. ``X_1`` and ``X_2``
+    carry the remainder times ``b0 x`` and ``b0^2 x^2``.
     """
     n = _SERIES_ORDER + 1
     beta = b0 / b - 1.0
