@@ -98,7 +98,7 @@ def test_series_order_meets_its_truncation_bound(x_max):
         powers = (-beta) ** k
         exact = np.exp(-x * (1.0 + beta))
 
-        def series(n):
+        def series(n, powers=powers):
             return np.exp(-x) * (terms[:, :n + 1] * powers[:n + 1]).sum(axis=1)
 
         # the bound (1e-17 per unit weight) plus the rounding of the sum

@@ -227,11 +227,11 @@ def kl_constrained(
     exp(-y/b0)]`` (one operator call), from which a Taylor series in ``b0/b - 1`` gives any
     factor's objective within ``|log(b/b0)| <= 0.15`` to 1e-17 per unit of weight, below the
     rounding of a direct evaluation (where no node applies, as for ``b`` above the values'
-    scale, each factor is evaluated directly). Everything is computed in the log domain, shifted by the
-    smallest value each factor can see, with ``expm1`` for large ``b``: finite and accurate
-    for values from 0 to 1e6 and beyond and ``b`` from 1e-9 (relative to the values) to
-    ``2 (max V - min V) / rho``. The grid is scaled by the values, never by a bound such as
-    ``H r_max``.
+    scale, each factor is evaluated directly). Everything is computed in the log domain,
+    shifted by the smallest value each factor can see, with ``expm1`` for large ``b``: finite
+    and accurate for values from 0 to 1e6 and beyond and ``b`` from 1e-9 (relative to the
+    values) to ``2 (max V - min V) / rho``. The grid is scaled by the values, never by a
+    bound such as ``H r_max``.
 
     Guarantees: with ``v_range = (lo, hi)`` (unbounded when None) and ``m_i = clip(E_i(v),
     lo, hi)``, the result lies in ``[min(lower_i, m_i), m_i]``, ``lower_i = lo`` for a
