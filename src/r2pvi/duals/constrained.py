@@ -477,7 +477,8 @@ class _KLProblem:
             if js:
                 b = bs[s_idx]
                 ys = self._y_shared
-                np.multiply.outer(-1.0 / b, np.maximum(ys, 0.0), out=y[0, :js])
+                np.multiply.outer(-1.0 / b, np.maximum(ys, 0.0) if self._y_negative else ys,
+                                  out=y[0, :js])
                 np.exp(y[0, :js], out=y[0, :js])
                 np.multiply(y[0, :js], ys, out=y[1, :js])
                 np.multiply(y[1, :js], ys, out=y[2, :js])
