@@ -773,8 +773,7 @@ class _KLProblem:
         """Clip ``log u`` to ``[-m/b, 0 if centered]`` (``m = cap``, Jensen's floor) and return
         ``G, dG/dt, d2G/dt2`` of ``G(t) = -b (log u + rho)``, ``b = e^t``; ``t1 = b u'/u`` and
         ``b3g2 = b^3 g''(b)``."""
-        b = np.broadcast_to(b, log_u.shape)
-        log_lo = -cap / b
+        log_lo = -cap / b  # (b broadcasts against log_u in every formula below)
         low = ~(log_u >= log_lo)  # NaN/-inf too
         if low.any():
             log_u = np.where(low, log_lo, log_u)
@@ -790,8 +789,9 @@ class _KLProblem:
         g = -b * (log_u + rho)
         d1 = b * gp
         d2 = d1 + b3g2 / b
-        bad = ~np.isfinite(g)
-        if bad.any():
+        finite = np.isfinite(g)
+        if not finite.all():
+            bad = ~finite
             g, d1, d2 = np.where(bad, -np.inf, g), np.where(bad, 0.0, d1), np.where(bad, -1.0, d2)
         return g, d1, d2
 
@@ -813,10 +813,13 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
         # Newton on p'(s) = 0 from the end with the larger value, kept in [0, 1].
         s = np.where(g1 > g0, 1.0, 0.0)
         s_prev = np.full_like(s, np.nan)
+        a2, a3, a4, a5 = 2.0 * c2, 3.0 * c3, 4.0 * c4, 5.0 * c5  # p'(s) = c1 + a2 s + ...
+        b3, b4, b5 = 6.0 * c3, 12.0 * c4, 20.0 * c5  # p''(s) = a2 + b3 s + ...
         for it in range(iters):
-            p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
-            p2 = 2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))
-            s_new = np.clip(s - p1 / np.where(p2 < 0, p2, -np.inf), 0.0, 1.0)
+            p1 = c1 + s * (a2 + s * (a3 + s * (a4 + s * a5)))
+            p2 = a2 + s * (b3 + s * (b4 + s * b5))
+            p2[~(p2 < 0)] = -np.inf  # Newton only where p is concave (no step elsewhere)
+            s_new = np.minimum(np.maximum(s - p1 / p2, 0.0), 1.0)
             moved = np.abs(s_new - s) > 1e-13
             if not moved.any():
                 s = s_new
@@ -824,12 +827,11 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
             # A row back where it was two steps ago cycles for good (the map is fixed): stop
             # iterating once every moving row cycles, each at the point the full count of
             # iterations would reach (the cycle's parity).
-            cycling = moved & (s_new == s_prev)
-            if np.array_equal(cycling, moved):
-                s = np.where(cycling & ((iters - 1 - it) % 2 == 1), s, s_new)
+            if (s_new[moved] == s_prev[moved]).all():
+                s = np.where(moved & ((iters - 1 - it) % 2 == 1), s, s_new)
                 break
             s_prev, s = s, s_new
-        p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
+        p1 = c1 + s * (a2 + s * (a3 + s * (a4 + s * a5)))
         good = (h > 0) & (s > 0.0) & (s < 1.0) & np.isfinite(s) & np.isfinite(
             g0 + g1 + d0 + d1 + dd0 + dd1) & (np.abs(p1) <= 1e-6 * (np.abs(c1) + np.abs(h * d1)))
     return np.where(good, t0 + h * s, np.nan)
