@@ -48,7 +48,8 @@ def problem(E, v, rho):
     d = E.n_dims
     plain = E(v)
     dims = np.arange(d)
-    prob = C._KLProblem(E, v, np.full(d, rho), dims, np.clip(plain, 0.0, v.max()), 0.0, True)
+    prob = C._KLProblem(E, v, np.full(d, rho), dims, 0.0, True)
+    prob.set_cap(np.clip(plain, 0.0, v.max()))
     prob.on_grid(np.array([v.max() or 1.0]))  # E(1) arrives with the first grid
     return prob
 

@@ -287,14 +287,16 @@ def kl_constrained(
     if v_range is None and v_max is not None:
         v_range = (-np.inf, v_max)
     lo, hi = _value_range(v_range)
-    plain = E(v)
     dims = np.flatnonzero(rho > 0)
     if dims.size == 0:
-        return plain
-    cap = np.clip(plain, lo, hi)
+        return E(v)
     if b_min is not None and not (np.isfinite(b_min) and b_min > 0):
         raise ValueError(f"b_min must be a positive number or None, got {b_min!r}")
-    prob = _KLProblem(E, v, rho, dims, cap, lo, centered)
+    prob = _KLProblem(E, v, rho, dims, lo, centered)
+    prob.prepare(b_min)  # the grid's columns, read with E(v) where the operator streams
+    plain = E(v)
+    cap = np.clip(plain, lo, hi)
+    prob.set_cap(cap)
     best = prob.solve(b_min, xtol, max_iter)
     out = plain.copy()  # rho_i = 0: exactly the plain expectation
     # Jensen's floor keeps every objective value <= cap - b rho; the min only absorbs rounding.
@@ -309,7 +311,7 @@ def kl_constrained(
 class _KLProblem:
     """The KL-ball dual of the factors ``dims``: evaluation in log b on a grid and per factor."""
 
-    def __init__(self, E, v, rho, dims, cap, lo, centered):
+    def __init__(self, E, v, rho, dims, lo, centered):
         self.E, self.v, self.dims = E, v, dims
         self.rho = rho[dims]
         self.centered = bool(centered)
@@ -339,8 +341,8 @@ class _KLProblem:
             self._set_row_sums(E(np.ones_like(v))[dims])
         else:
             self.norm = np.ones(dims.size)
-        # Jensen's floor of log u: -m_i / b, m_i the plain estimate (per unit of row mass).
-        self.cap = cap[dims] / self.norm
+        self.cap = None  # set_cap
+        self._coarse = None  # prepare
         if E.nonnegative:
             self.lower = np.maximum(self.shift, lo)
             # rho_i >= log(1 / mu0_i(argmin)): saturated (rounding could put a grid value an
@@ -356,6 +358,24 @@ class _KLProblem:
         with np.errstate(divide="ignore", over="ignore"):
             self.b_hi = np.minimum(2.0 * spread / self.rho, _B_CAP * self.scale)
 
+    def set_cap(self, cap):
+        """Jensen's floor of log u: ``-m_i / b``, ``m_i`` the plain estimate (clipped to the
+        value range; per unit of row mass)."""
+        self.cap = cap[self.dims] / self.norm
+
+    def prepare(self, b_min):
+        """The grid of log b and its transformed values (:meth:`_grid_fill`), registered with
+        an operator that streams its points (``include``), so that the plain estimate's pass
+        reads them too."""
+        lo_b = b_min if b_min is not None else _B_FLOOR * self.scale
+        hi_b = max(float(self.b_hi.max()), 4.0 * lo_b)
+        tgrid = _log_grid(lo_b, hi_b, self.scale)
+        state = self._grid_fill(np.exp(tgrid))
+        include = getattr(self.E, "include", None)
+        if state[0] is not None and include is not None:
+            include(state[0])
+        self._coarse = (tgrid, state)
+
     def _set_row_sums(self, row_sums):
         """``norm``, ``c`` and ``base`` from the row sums ``E_i(1)`` (see ``__init__``)."""
         m = self.dims.size
@@ -367,11 +387,11 @@ class _KLProblem:
 
     # ------------------------------------------------------------------ solver
     def solve(self, b_min, xtol, max_iter):
-        lo_b = b_min if b_min is not None else _B_FLOOR * self.scale
-        hi_b = max(float(self.b_hi.max()), 4.0 * lo_b)
-        tgrid = _log_grid(lo_b, hi_b, self.scale)
+        if self._coarse is None:
+            self.prepare(b_min)
+        tgrid, state = self._coarse
         n_grid = tgrid.size
-        g, dg, d2g = self.on_grid(np.exp(tgrid))
+        g, dg, d2g = self._grid_eval(np.exp(tgrid), state)
         k = np.argmax(g, axis=1)
         r = np.arange(k.size)
         best = g[r, k]
@@ -457,61 +477,75 @@ class _KLProblem:
         The transformed values of all grid points go to the operator in one call (one pass
         over the points' features), except for factors with different shifts (explicit rows).
         """
-        out = [np.empty((self.dims.size, bs.size)) for _ in range(3)]
+        return self._grid_eval(bs, self._grid_fill(bs))
+
+    def _grid_fill(self, bs):
+        """The transformed values of the grid points as the operator's columns ``(n, 3 J)``
+        (plus ``1`` for ``E(1)`` while the row sums are unknown), contiguous rows for the
+        element-wise passes; None for the columns when factors need explicit rows."""
         plain = bs >= self.scale
         n = self.v.size
         shifted_rows = (~plain).any() and not self.shared_shift
         sel = plain if shifted_rows else np.ones(bs.size, dtype=bool)
         j_all = int(sel.sum())
+        if not j_all:
+            return None, plain, j_all, False
+        ones = self.c is None  # E(1) in the same call
+        buf = buffer("klball.grid", (3 * j_all + ones, n))
+        if ones:
+            buf[-1] = 1.0
+        y = buf[:3 * j_all].reshape(3, j_all, n)
+        jp = int(plain.sum())
+        js = j_all - jp
+        if js:  # shifted grid points: the first columns
+            b = bs[~plain]
+            ys = self._y_shared
+            np.multiply.outer(-1.0 / b, np.maximum(ys, 0.0) if self._y_negative else ys,
+                              out=y[0, :js])
+            np.exp(y[0, :js], out=y[0, :js])
+            np.multiply(y[0, :js], ys, out=y[1, :js])
+            np.multiply(y[1, :js], ys, out=y[2, :js])
+        if jp:
+            b = bs[plain]
+            e1 = np.multiply.outer(-1.0 / b, self.v, out=y[0, js:])
+            ex = np.exp(e1, out=y[1, js:])
+            # exp(-V/b) - 1: ex - 1 carries ex's rounding (<= 2^-53), which moves
+            # G = -b log u by about b 2^-53 sum |M_i| (< 1e-14 of the values for
+            # b <= 64 max |V|); expm1, exact to the last digit, for larger b.
+            big = int(np.searchsorted(b, _EXPM1_FROM * self.scale, side="right"))
+            np.expm1(e1[big:], out=e1[big:])
+            np.subtract(ex[:big], 1.0, out=e1[:big])
+            ex *= self.v
+            np.multiply(ex, self.v, out=y[2, js:])
+        return buf.T, plain, j_all, ones
+
+    def _grid_eval(self, bs, state):
+        """:meth:`on_grid` from the columns of :meth:`_grid_fill` (one operator call)."""
+        cols, plain, j_all, ones = state
+        out = [np.empty((self.dims.size, bs.size)) for _ in range(3)]
         if j_all:
-            # Transformed values as rows (3, J, n), contiguous for the element-wise passes;
-            # the operator takes their transpose (one call for all columns).
-            ones = self.c is None  # E(1) in the same call
-            buf = buffer("klball.grid", (3 * j_all + ones, n))
-            if ones:
-                buf[-1] = 1.0
-            y = buf[:3 * j_all].reshape(3, j_all, n)
-            jp = int(plain.sum())
-            js = j_all - jp
-            s_idx = np.flatnonzero(~plain)  # shifted grid points: the first columns
-            if js:
-                b = bs[s_idx]
-                ys = self._y_shared
-                np.multiply.outer(-1.0 / b, np.maximum(ys, 0.0) if self._y_negative else ys,
-                                  out=y[0, :js])
-                np.exp(y[0, :js], out=y[0, :js])
-                np.multiply(y[0, :js], ys, out=y[1, :js])
-                np.multiply(y[1, :js], ys, out=y[2, :js])
-            if jp:
-                b = bs[plain]
-                e1 = np.multiply.outer(-1.0 / b, self.v, out=y[0, js:])
-                ex = np.exp(e1, out=y[1, js:])
-                # exp(-V/b) - 1: ex - 1 carries ex's rounding (<= 2^-53), which moves
-                # G = -b log u by about b 2^-53 sum |M_i| (< 1e-14 of the values for
-                # b <= 64 max |V|); expm1, exact to the last digit, for larger b.
-                big = int(np.searchsorted(b, _EXPM1_FROM * self.scale, side="right"))
-                np.expm1(e1[big:], out=e1[big:])
-                np.subtract(ex[:big], 1.0, out=e1[:big])
-                ex *= self.v
-                np.multiply(ex, self.v, out=y[2, js:])
-            mom = self.E(buf.T)[self.dims]
+            mom = self.E(cols)[self.dims]
             if ones:
                 self._set_row_sums(mom[:, -1].copy())
                 mom = mom[:, :-1]
             mom /= self.norm[:, None]
             mom = mom.reshape(self.dims.size, 3, j_all)
+            jp = int(plain.sum())
+            js = j_all - jp
             if jp:
-                res = self._plain(mom[:, 0, js:], mom[:, 1, js:], mom[:, 2, js:], b[None, :],
-                                  self.base[:, None], self.rho[:, None], self.cap[:, None])
+                res = self._plain(mom[:, 0, js:], mom[:, 1, js:], mom[:, 2, js:],
+                                  bs[None, plain], self.base[:, None], self.rho[:, None],
+                                  self.cap[:, None])
                 for o, val in zip(out, res, strict=True):
                     o[:, plain] = val
             if js:
+                s_idx = np.flatnonzero(~plain)
                 res = self._shifted(mom[:, 0, :js], mom[:, 1, :js], mom[:, 2, :js],
                                     self.shift[:, None], bs[None, s_idx], self.c[:, None],
                                     self.rho[:, None], self.cap[:, None])
                 for o, val in zip(out, res, strict=True):
                     o[:, s_idx] = val
-        if shifted_rows:
+        if (~plain).any() and not self.shared_shift:
             # non-negative operator whose factors see different minima: explicit rows
             # (self.rows is set for non-negative operators)
             b = bs[~plain]
