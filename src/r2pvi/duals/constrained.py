@@ -403,20 +403,25 @@ class _KLProblem:
         # derivatives, known from the grid), a far better start than Newton from one end.
         first = _hermite_argmax(lo, hi, g[r, k_lo], dg[r, k_lo], d2g[r, k_lo], g[r, k_hi],
                                 dg[r, k_hi], d2g[r, k_hi])
+        ftol = _FTOL * self.scale
         series = np.zeros(first.size, dtype=bool)
         if self._series_possible():
             # Factors starting in the shifted regime (b < scale): Taylor moments at a few
             # shared nodes covering their first steps; every Newton evaluation near a node is
-            # then a short series (no pass over the points).
+            # then a short series (no pass over the points). Factors with nothing to refine
+            # (an empty bracket at an end of the grid, or a grid point that is already
+            # optimal) need none.
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                done = ~(hi - lo > xtol * (1.0 + np.abs(t))) | (
+                    (f2 < 0) & (0.5 * f1 * f1 / np.abs(f2) <= ftol))
             start = np.where(np.isnan(first), 0.5 * (lo + hi), first)
             series = start < np.log(self.scale)
             self._t_range = (float(tgrid[0]), float(tgrid[-1]))
-            self._series_cover(start[series], best)
+            self._series_cover(start[series & ~done], best)
         if not series.all():  # the others: a local grid of exact evaluations
             local = self._refine_locally(np.where(series, np.nan, first), lo, hi, best,
                                          tgrid[0], tgrid[-1])
             first = np.where(series, first, local)
-        ftol = _FTOL * self.scale
         for it in range(max_iter):
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 newton = t - f1 / f2
