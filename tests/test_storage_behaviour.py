@@ -97,9 +97,12 @@ def forms(tmp_path_factory):
 
 @pytest.mark.parametrize("case", ["episodes", "writer", "transitions"])
 def test_rebuilt_next_features_are_the_stored_ones_bitwise(forms, case, monkeypatch):
-    monkeypatch.setattr(storage, "SIDE_BLOCK", 7)  # side positions: counts per 7 samples
+    # side positions: counts per 7 samples (patched where BehaviourNext reads it)
+    monkeypatch.setattr(storage._behaviour, "SIDE_BLOCK", 7)
     full, beh = (OfflineDataset.open(p) for p in forms[case])
     assert isinstance(beh._source.next, BehaviourNext)
+    _, blocks = beh._source.next._index(0)[1]
+    assert len(blocks) == full.n_trajectories // 7 + 2  # the patch took effect
     assert same_bits(beh.next_phi, full.next_phi)
     assert same_bits(beh.next_values, full.next_values)
     for h, s, e in ((0, 3, 50), (H - 1, 0, 7), (2, 100, 101)):  # any range, any step

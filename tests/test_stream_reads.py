@@ -35,16 +35,29 @@ def test_mapped_windows_read_what_pread_reads(data, window, chunk, monkeypatch):
     equals FileField.read (pread), float64 and in file order."""
     _, path = data
     f = FileField(path / "next_phi.npy")
-    monkeypatch.setattr(storage, "MAP_WINDOW", window)
+    # the module that reads MAP_WINDOW (storage re-exports only its value)
+    monkeypatch.setattr(storage._reads, "MAP_WINDOW", window)
+    maps = []
+    real = mmap.mmap
+
+    def counted(*a, **k):
+        maps.append(a[1])
+        return real(*a, **k)
+
+    monkeypatch.setattr(mmap, "mmap", counted)
     H, K = f.shape[:2]
     shape = (min(chunk, K),) + f.shape[2:]
     for h in (0, H - 1):
         seen = 0
+        maps.clear()
         for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
             assert s == seen and rows.dtype == np.float64
             np.testing.assert_array_equal(rows, f.read(h, s, e))
             seen = e
         assert seen == K
+        # the window took effect: a step is mapped whole only when it fits in one window
+        step = K * f._row
+        assert (len(maps) == 1) == (step <= window), (len(maps), step, window)
     # a pass abandoned half-way releases its map (no BufferError, no open map left behind)
     gen = storage._prefetched(f, 1, K, chunk, shape)
     next(gen)

@@ -1,0 +1,135 @@
+"""Step-major storage: where a dataset's numbers live, read one step at a time.
+
+Every step of the backward induction reads only that step's data. A dataset is therefore a
+*step source*: fields of shape ``(H, K, ...)`` (step-major) that can be read one step and
+one range of trajectories at a time, wherever they are:
+
+- :class:`ArrayField` — a NumPy array (or a read-only view of the caller's array, no copy);
+- :class:`FileField` — a ``.npy`` file of the on-disk format, read chunk by chunk: while
+  fitting, a step is memory-mapped a window of 32 MiB at a time and cast chunk by chunk into a
+  reused float64 buffer (the resident memory stays bounded; ``pread`` where a file cannot be
+  mapped); :meth:`FileField.read` reads a range with ``pread``, :meth:`FileField.lazy` gives a
+  memory map of the whole file for browsing;
+- :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
+
+Next-state features are computed where they need not be stored (:class:`StoredNext`,
+:class:`BehaviourNext` for trajectories, whose taken action's row is the next step's
+features, :class:`TableNext` for finite MDPs, :class:`MapNext` for stored observations and a
+feature map), and the engine asks for the next-state values ``V_{h+1}`` chunk by chunk through
+:meth:`StepSource.next_state_values`.
+
+The on-disk format (format version 2) is a directory::
+
+    manifest.json        {"kind": "r2pvi.OfflineDataset", "format_version": 2, ...}
+    phi.npy              (H, K, d)     float32 or float64, step-major
+    rewards.npy          (H, K)
+    next_phi.npy         (H, K, A, d)  stored next-state features, or
+    next_index.npy       (H, K)        next-state indices into
+    next_table.npy       (S, A, d) or (H, S, A, d)   a feature table (row h of a 4-D table
+                                       holds the features used for the next states of step h)
+    next_action.npy      (H, K)        or the behaviour form: the action whose row is
+    next_rest.npy        (H, K, A-1, d)  phi[k, h+1] (-1: none), the other actions' rows,
+    next_side.npy        (n_side, d)   the rows where none matched, by step (offsets
+    next_side_offsets.npy (H+1,)       into next_side); see BehaviourNext
+    next_values.npy      (H, K, A)     known next-state action values (NaN: learn); optional
+    next_table_values.npy (S, A)       known values by next state (table form); optional
+    gram.npy             (H, d, d)     float64 Phi_h^T Phi_h of the stored features; optional
+    phi_sums.npy         (H, d)        float64 Phi_h^T 1 (column sums); optional
+    extra_<name>.npy     (K, H, ...)   observed states, actions, next states; optional
+
+Plain ``.npy`` files (no pickle, ``allow_pickle=False`` on every read), described by a JSON
+manifest with the shapes, dtypes and cached facts (non-negativity of the features).
+"""
+
+from ._behaviour import (  # noqa: F401
+    BEHAVIOUR_VERSION,
+    NEXT_FORMS,
+    SIDE_BLOCK,
+    BehaviourNext,
+    RowFile,
+    _action_dtype,
+    _behaviour_files,
+    _next_form,
+    _write_behaviour,
+    behaviour_split,
+)
+from ._checks import (  # noqa: F401
+    SimplexFeatureWarning,
+    _counted,
+    check_features_chunk,
+    layout_step_major,
+    simplex_flags,
+    step_major,
+    validate_source,
+    warn_simplex,
+)
+from ._directory import (  # noqa: F401
+    _Computed,
+    _open_behaviour,
+    _stream_field,
+    open_directory,
+    write_directory,
+)
+from ._fields import (  # noqa: F401
+    CHUNK,
+    ArrayField,
+    DaskField,
+    Field,
+    FileField,
+    MappedField,
+    _as_float64,
+    _float_dtype,
+)
+from ._format import (  # noqa: F401
+    FORMAT_VERSION,
+    GRAM_FILE,
+    KIND,
+    MANIFEST,
+    SUMS_FILE,
+    _add_gram,
+    _finish,
+    _manifest,
+    _temp_dir,
+    _write_npy_header,
+)
+from ._next import (  # noqa: F401
+    MapNext,
+    NextStates,
+    StoredNext,
+    TableNext,
+    _dask_values,
+)
+from ._reads import (  # noqa: F401
+    MAP_WINDOW,
+    _pread_chunks,
+    _prefetched,
+)
+from ._source import (  # noqa: F401
+    GRAM_CACHE_MAX_D,
+    StepSource,
+    _dask_products,
+)
+from ._writer import (  # noqa: F401
+    DatasetWriter,
+)
+
+__all__ = [
+    "FORMAT_VERSION",
+    "CHUNK",
+    "ArrayField",
+    "FileField",
+    "DaskField",
+    "StoredNext",
+    "BehaviourNext",
+    "RowFile",
+    "behaviour_split",
+    "TableNext",
+    "MapNext",
+    "MappedField",
+    "StepSource",
+    "DatasetWriter",
+    "open_directory",
+    "write_directory",
+    "step_major",
+    "validate_source",
+]

@@ -1,0 +1,151 @@
+"""Validation of step-major data, chunk by chunk: finiteness, the simplex assumption,
+non-negativity."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from ._fields import CHUNK
+
+
+class SimplexFeatureWarning(UserWarning):
+    """Features break the paper's simplex assumption (phi_i >= 0 and sum_i phi_i = 1)."""
+
+
+def simplex_flags(x: np.ndarray, atol: float = 1e-8) -> tuple[bool, bool]:
+    """``(negative entries, rows not summing to 1)`` of feature rows (last axis)."""
+    if x.size == 0:
+        return False, False
+    return bool((x < -atol).any()), bool((np.abs(x.sum(axis=-1) - 1.0) > 1e-6).any())
+
+
+def warn_simplex(name: str, negative: bool, off_sum: bool, stacklevel: int = 3) -> bool:
+    """Warn with :class:`SimplexFeatureWarning` when a flag is set; True when on the simplex."""
+    if not (negative or off_sum):
+        return True
+    what = " and ".join(
+        w for w, bad in (("negative entries", negative), ("rows not summing to 1", off_sum))
+        if bad
+    )
+    warnings.warn(
+        f"{name} has {what}: the paper's simplex assumption (phi_i >= 0, sum_i phi_i = 1) "
+        "does not hold. The algorithms still run; the d-rectangular guarantees do not apply.",
+        SimplexFeatureWarning,
+        stacklevel=stacklevel + 1,
+    )
+    return False
+
+
+def step_major(x, name: str, ndim: int, dtype=None) -> np.ndarray:
+    """``x (K, H, ...)`` as a C-contiguous step-major float array ``(H, K, ...)``.
+
+    No copy when ``x`` already is one in memory (e.g. ``a.transpose(1, 0, ...)`` of a
+    C-contiguous ``(H, K, ...)`` array of float32 or float64); otherwise exactly one.
+    """
+    raw = np.asarray(x) if not isinstance(x, str) else None
+    if raw is None or raw.dtype.kind not in "biuf":
+        if raw is not None and raw.dtype.kind == "c":
+            raise TypeError(f"{name} must be real, got a complex array")
+        kind = type(x).__name__ if raw is None else f"an array of dtype {raw.dtype}"
+        raise TypeError(f"{name} must be a numeric (float) array, got {kind}")
+    if raw.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {raw.shape}")
+    target = np.dtype(dtype) if dtype is not None else (
+        raw.dtype if raw.dtype in (np.float32, np.float64) else np.dtype(np.float64))
+    sm = raw.swapaxes(0, 1)
+    if sm.dtype == target and sm.flags.c_contiguous:
+        return sm
+    return np.ascontiguousarray(sm, dtype=target)
+
+
+def layout_step_major(x: np.ndarray) -> np.ndarray:
+    """``x (K, H, ...)`` as a C-contiguous ``(H, K, ...)`` array of any dtype: a view when
+    it already is one (e.g. a transposed memory map), else one copy."""
+    sm = np.asarray(x).swapaxes(0, 1)
+    return sm if sm.flags.c_contiguous else np.ascontiguousarray(sm)
+
+
+def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
+                         simplex: bool = True):
+    """Validate one chunk of step-major rows; returns ``(phi, next_phi)`` simplex flags
+    and non-negativity: ``(neg_phi, off_phi, neg_next, off_next, nonneg_phi, nonneg_next)``.
+
+    ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used. With
+    ``simplex=False`` the simplex flags (row sums: most of the work) are not computed and
+    returned False; everything else is checked the same.
+    """
+    for name, x in (("phi", phi), ("rewards", rewards)):
+        if not np.isfinite(x).all():
+            raise ValueError(f"{name} contains {int(np.count_nonzero(~np.isfinite(x)))} NaN or "
+                             "infinite entries; clean the data first")
+    if next_values is not None and not last_step and np.isinf(next_values).any():
+        raise ValueError(f"next_values contains {int(np.count_nonzero(np.isinf(next_values)))} "
+                         "infinite entries; use NaN where the value must be learned")
+    flags = simplex_flags(phi) if simplex else (False, False)
+    nonneg_phi = bool((phi >= 0).all())
+    if last_step or next_phi is None:
+        return flags + (False, False, nonneg_phi, True)
+    finite = np.isfinite(next_phi).all(axis=-1)
+    if not finite.all():
+        # An action whose value is known needs no features: its row may be left NaN.
+        known = np.zeros(finite.shape, bool) if next_values is None else ~np.isnan(next_values)
+        if not (finite | known).all():
+            raise ValueError(
+                "next_phi contains NaN or infinite entries in steps h < H-1 where no value is "
+                "known (only the last step's row and actions with a known next_values entry "
+                "may be left undefined)"
+            )
+    # NaN rows (known values) count as neither negative nor off the simplex.
+    next_flags = simplex_flags(next_phi) if simplex else (False, False)
+    return flags + next_flags + (nonneg_phi, not bool((next_phi < 0).any()))
+
+
+def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chunk=CHUNK,
+                    stacklevel=3):
+    """Validate step-major arrays chunk by chunk (no full-size temporaries).
+
+    Returns ``(nonnegative_phi, nonnegative_next_phi, any_known)``.
+    """
+    H, K, _ = phi.shape
+    acc = [False, False, False, False, True, True]
+    any_known = False
+    for h in range(H):
+        last = h == H - 1
+        for s in range(0, K, chunk):
+            e = min(K, s + chunk)
+            nv = None if next_values is None else next_values[h, s:e]
+            try:
+                flags = check_features_chunk(
+                    phi[h, s:e], rewards[h, s:e],
+                    None if next_phi is None else next_phi[h, s:e], nv, last, check_simplex)
+            except ValueError as exc:
+                raise _counted(exc, phi, rewards, next_values, chunk) from None
+            for i in range(4):
+                acc[i] = acc[i] or flags[i]
+            acc[4] = acc[4] and flags[4]
+            acc[5] = acc[5] and flags[5]
+            if nv is not None and not last and not any_known:
+                any_known = bool((~np.isnan(nv)).any())
+    if check_simplex:
+        warn_simplex("phi", acc[0], acc[1], stacklevel)
+        if next_phi is not None:
+            warn_simplex("next_phi", acc[2], acc[3], stacklevel)
+    return acc[4], acc[5], any_known
+
+
+def _counted(exc: ValueError, phi, rewards, next_values, chunk) -> ValueError:
+    """The error of one chunk, with the count of bad entries over the whole field."""
+    msg = str(exc)
+    name = msg.split(" ", 1)[0]
+    field = {"phi": phi, "rewards": rewards, "next_values": next_values}.get(name)
+    if field is None or " contains " not in msg:
+        return exc
+    bad = np.isinf if name == "next_values" else (lambda x: ~np.isfinite(x))
+    H, K = field.shape[:2]
+    n = sum(int(np.count_nonzero(bad(field[h, s:s + chunk])))
+            for h in range(H - (name == "next_values")) for s in range(0, K, chunk))
+    rest = msg.split(" entries", 1)[1] if " entries" in msg else ""
+    kind = "infinite" if name == "next_values" else "NaN or infinite"
+    return ValueError(f"{name} contains {n} {kind} entries{rest}")

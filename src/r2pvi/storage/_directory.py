@@ -1,0 +1,264 @@
+"""Opening and writing a dataset directory of the on-disk format (see :mod:`r2pvi.storage`)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ._behaviour import BEHAVIOUR_VERSION, BehaviourNext, RowFile, _next_form, _write_behaviour
+from ._fields import Field, FileField, MappedField
+from ._format import (
+    FORMAT_VERSION,
+    GRAM_FILE,
+    KIND,
+    SUMS_FILE,
+    _add_gram,
+    _finish,
+    _manifest,
+    _temp_dir,
+    _write_npy_header,
+)
+from ._next import MapNext, NextStates, StoredNext, TableNext
+from ._source import StepSource
+
+
+def open_directory(path, feature_map=None) -> StepSource:
+    """A :class:`StepSource` over a dataset directory; nothing is read but the headers.
+
+    A dataset stored as observations (``"phi": "map"`` or ``"next": "map"`` in the
+    manifest) needs the ``feature_map`` it was built with."""
+    path = Path(os.fspath(path))
+    if not path.exists():
+        raise FileNotFoundError(f"no such dataset directory: {path}")
+    mf = _manifest(path)
+    files = mf["files"]
+
+    def field(name):
+        f = FileField(path / files[name])
+        if list(f.shape) != list(mf["shapes"][name]):
+            raise ValueError(f"{path / files[name]} has shape {f.shape}, the manifest says "
+                             f"{mf['shapes'][name]}")
+        return f
+
+    needs_map = mf.get("phi", "stored") == "map" or mf["next"] == "map"
+    if needs_map and not callable(feature_map):
+        raise ValueError(
+            f"{path} stores observations, not features: pass the feature_map it was built "
+            "with, OfflineDataset.open(path, feature_map=f) with f(observations, actions) -> "
+            "(n, d)")
+    d = int(mf["n_features"])
+    if mf.get("phi", "stored") == "map":
+        phi: Field = MappedField(field("observations"), field("actions"), feature_map, d)
+    else:
+        phi = field("phi")
+    rewards = field("rewards")
+    if mf["next"] == "map":
+        kv = field("next_values") if "next_values" in files else None
+        nxt: NextStates = MapNext(field("next_observations"), feature_map,
+                                  int(mf["n_actions"]), d, kv)
+    elif mf["next"] == "stored":
+        nxt = StoredNext(field("next_phi"),
+                                     field("next_values") if "next_values" in files else None,
+                                     mf.get("nonnegative_next_phi"))
+    elif mf["next"] == "behaviour":
+        nxt = _open_behaviour(path, mf, field, phi)
+    elif mf["next"] == "table":
+        table = np.load(path / files["next_table"], allow_pickle=False)
+        kt = (np.load(path / files["next_table_values"], allow_pickle=False)
+              if "next_table_values" in files else None)
+        nxt = TableNext(field("next_index"), table, kt)
+    else:
+        raise ValueError(f"{path}: unknown next-state form {mf['next']!r}")
+    extras = {}
+    for name in mf.get("extras", []):
+        extras[name] = np.load(path / f"extra_{name}.npy", mmap_mode="r", allow_pickle=False)
+    grams = None
+    if "gram" in files:
+        grams = np.load(path / files["gram"], allow_pickle=False)
+        H, d_ = int(mf["horizon"]), int(mf["n_features"])
+        if grams.shape != (H, d_, d_) or grams.dtype != np.float64:
+            raise ValueError(f"{path / files['gram']} must hold (H, d, d) = {(H, d_, d_)} "
+                             f"float64 Gram matrices, got {grams.shape} {grams.dtype}")
+    sums = None
+    if "phi_sums" in files:  # optional (datasets written before it have none)
+        sums = np.load(path / files["phi_sums"], allow_pickle=False)
+        H, d_ = int(mf["horizon"]), int(mf["n_features"])
+        if sums.shape != (H, d_) or sums.dtype != np.float64:
+            raise ValueError(f"{path / files['phi_sums']} must hold (H, d) = {(H, d_)} "
+                             f"float64 column sums, got {sums.shape} {sums.dtype}")
+    return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams,
+                      sums=sums)
+
+
+def _open_behaviour(path: Path, mf: dict, field, phi: Field) -> BehaviourNext:
+    """The behaviour form's fields, checked against the manifest (each error names the
+    field)."""
+    files = mf["files"]
+    spec = mf.get("next_behaviour")
+    if not isinstance(spec, dict) or not isinstance(spec.get("version"), int):
+        raise ValueError(f"{path}: the manifest's 'next_behaviour' entry (a dict with a "
+                         "'version') is missing or malformed")
+    if spec["version"] > BEHAVIOUR_VERSION:
+        raise ValueError(f"{path}: next_behaviour version {spec['version']}; this r2pvi reads "
+                         f"versions <= {BEHAVIOUR_VERSION}: upgrade r2pvi")
+    for name in ("next_action", "next_rest", "next_side", "next_side_offsets"):
+        if name not in files or name not in mf.get("shapes", {}):
+            raise ValueError(f"{path}: the manifest lists no {name!r} field, which the "
+                             "behaviour next-state form needs")
+        if not (path / files[name]).is_file():
+            raise ValueError(f"{path}: the {name!r} field's file {files[name]} is missing")
+    if not isinstance(phi, FileField):
+        raise ValueError(f"{path}: the behaviour next-state form needs stored features "
+                         "('phi': 'stored')")
+    H, K, d = phi.shape
+    A = int(mf["n_actions"])
+    store = phi.dtype
+    action, rest = field("next_action"), field("next_rest")
+    if action.dtype.kind != "i":
+        raise ValueError(f"{path}: next_action must hold signed integers, got {action.dtype}")
+    if action.shape != (H, K):
+        raise ValueError(f"{path}: next_action has shape {action.shape}, expected {(H, K)}")
+    if rest.shape != (H, K, A - 1, d) or rest.dtype != store:
+        raise ValueError(f"{path}: next_rest must be {(H, K, A - 1, d)} {store}, got "
+                         f"{rest.shape} {rest.dtype}")
+    side = RowFile(path / files["next_side"])
+    if list(side.shape) != list(mf["shapes"]["next_side"]) or side.shape[1:] != (d,) or \
+            side.dtype != store:
+        raise ValueError(f"{path}: next_side must be (n_side, d) {store} as the manifest says "
+                         f"{mf['shapes']['next_side']}, got {side.shape} {side.dtype}")
+    offsets = np.load(path / files["next_side_offsets"], allow_pickle=False)
+    if (offsets.shape != (H + 1,) or offsets.dtype.kind not in "iu" or offsets[0] != 0
+            or (np.diff(offsets) < 0).any() or (np.diff(offsets) > K).any()
+            or offsets[-1] != side.shape[0] or offsets[-1] - offsets[-2] != K
+            or spec.get("n_side") != side.shape[0]):
+        raise ValueError(
+            f"{path}: next_side_offsets must be (H+1,) = ({H + 1},) non-decreasing integers "
+            f"from 0 to the side table's {side.shape[0]} rows (at most K per step, K at the "
+            "last step, n_side in the manifest): the dataset is corrupt")
+    kv = field("next_values") if "next_values" in files else None
+    return BehaviourNext(action, rest, phi, side, offsets, kv, mf.get("nonnegative_next_phi"))
+
+
+def _stream_field(out_path: Path, field: Field, dtype, chunk: int, transform=None):
+    """Write ``field`` step by step into a .npy file (bounded memory)."""
+    with open(out_path, "wb") as fh:
+        _write_npy_header(fh, field.shape, dtype)
+        for h in range(field.shape[0]):
+            for s, e, rows in field.chunks(h, chunk):
+                if transform is not None:
+                    rows = transform(h, s, e, rows)
+                fh.write(np.ascontiguousarray(rows, dtype=dtype).tobytes())
+
+
+class _Computed(Field):
+    """A field computed by a function of (h, start, stop): next_phi of a feature map."""
+
+    def __init__(self, shape, dtype, fn):
+        self.shape, self.dtype, self.fn = tuple(shape), np.dtype(dtype), fn
+
+    def read(self, h, start=0, stop=None):
+        return self.fn(h, start, self.shape[1] if stop is None else stop)
+
+
+def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
+                    next_form="full") -> Path:
+    """Write ``source`` in the on-disk format (streamed step by step; atomic rename).
+
+    ``next_form="behaviour"`` stores stored next-state features without the rows that equal
+    the next step's taken-action features (:class:`BehaviourNext`)."""
+    path = Path(os.fspath(path))
+    next_form = _next_form(next_form)
+    store = np.dtype(dtype) if dtype is not None else np.dtype(
+        np.float32 if source.phi.dtype == np.float32 else np.float64)
+    if store not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    tmp = _temp_dir(path)
+    try:
+        files, shapes = {}, {}
+
+        def put(name, field, dt, transform=None):
+            files[name] = name + ".npy"
+            shapes[name] = list(field.shape)
+            _stream_field(tmp / files[name], field, dt, source.chunk, transform)
+
+        phi_kind = "stored"
+        if next_form == "behaviour" and (isinstance(source.phi, MappedField) or isinstance(
+                source.next, MapNext | TableNext)):
+            raise ValueError(
+                "next_form='behaviour' applies to stored next-state features; this dataset "
+                "stores observations or next-state indices, which hold no next-state features "
+                "to spare: save it with next_form='full'")
+        if isinstance(source.phi, MappedField):  # store what it is computed from
+            phi_kind = "map"
+            put("observations", source.phi.observations, source.phi.observations.dtype)
+            put("actions", source.phi.actions, source.phi.actions.dtype)
+        else:  # with the Gram matrices of the stored (rounded) features, as they stream by
+            grams = np.zeros((source.horizon, source.n_features, source.n_features))
+            sums = np.zeros((source.horizon, source.n_features))
+
+            def gram_of_stored(h, s, e, rows):
+                rows = np.asarray(rows, dtype=store)
+                _add_gram(grams[h], rows, sums[h])
+                return rows
+
+            put("phi", source.phi, store, gram_of_stored)
+            files["gram"] = GRAM_FILE
+            np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
+            files["phi_sums"] = SUMS_FILE
+            np.save(tmp / SUMS_FILE, sums, allow_pickle=False)
+        put("rewards", source.rewards, np.float64)
+        nxt = source.next
+        H, K, d = source.phi.shape
+        A = nxt.n_actions
+        meta = {"nonnegative_phi": source.nonnegative_phi, "phi": phi_kind}
+        if isinstance(nxt, MapNext):
+            kind = "map"
+            put("next_observations", nxt.observations, nxt.observations.dtype)
+            if nxt.has_known_values:
+                put("next_values", _Computed((H, K, A), np.float64,
+                                             lambda h, s, e: nxt.known(h, s, e)), np.float64)
+        elif isinstance(nxt, TableNext):
+            kind = "table"
+            put("next_index", nxt.index, np.int64)
+            files["next_table"] = "next_table.npy"
+            np.save(tmp / files["next_table"], np.asarray(nxt.table), allow_pickle=False)
+            if nxt.known_table is not None:
+                files["next_table_values"] = "next_table_values.npy"
+                np.save(tmp / files["next_table_values"], nxt.known_table, allow_pickle=False)
+        else:
+            kind = "stored"
+            feats = nxt.next_phi if isinstance(nxt, StoredNext) else _Computed(
+                (H, K, A, d), store, nxt.features)
+            if next_form == "behaviour":
+                kind = "behaviour"
+                meta["next_behaviour"] = _write_behaviour(tmp, files, shapes, source.phi,
+                                                          feats, store, source.chunk)
+            else:
+                put("next_phi", feats, store,
+                    lambda h, s, e, rows: np.nan_to_num(rows, nan=0.0) if h == H - 1 else rows)
+            if nxt.has_known_values:
+                kv = nxt.next_values if isinstance(nxt, StoredNext) else _Computed(
+                    (H, K, A), np.float64,
+                    lambda h, s, e: nxt.known(h, s, e))
+                put("next_values", kv, np.float64)
+            meta["nonnegative_next_phi"] = nxt.nonnegative
+        extras = []
+        for name, value in source.extras.items():
+            value = np.asarray(value)
+            if value.dtype.hasobject:
+                raise TypeError(f"cannot save {name!r}: object arrays are not supported")
+            np.save(tmp / f"extra_{name}.npy", value, allow_pickle=False)
+            extras.append(name)
+        manifest = {
+            "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
+            "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
+            "dtype": store.name, "next": kind, "files": files, "shapes": shapes,
+            "extras": extras, **meta,
+        }
+        return _finish(tmp, path, manifest, overwrite)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

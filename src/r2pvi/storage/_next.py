@@ -1,0 +1,221 @@
+"""Next-state forms: where the next-state features come from (stored, a table of a finite
+MDP, a feature map of stored observations); the engine asks only for values."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._fields import ArrayField, DaskField, Field, FileField, _as_float64
+from ._reads import _prefetched
+
+
+class NextStates:
+    """Where the next-state features come from; the engine only asks for values."""
+
+    n_actions: int
+    nonnegative: bool | None = None  # every used next-state feature >= 0 (None: unknown)
+    has_known_values: bool = False
+
+    def features(self, h, start=0, stop=None) -> np.ndarray:
+        """Features of every action at the next states ``(n, A, d)`` (float64 or float32)."""
+        raise NotImplementedError
+
+    def known(self, h, start=0, stop=None):
+        """Known next-state action values ``(n, A)`` (NaN: learn), or None."""
+        return None
+
+    def values(self, h, qmax, n, chunk) -> np.ndarray:
+        """``V_{h+1}`` at the K next states: ``qmax(features, known, nonneg) -> (n,)`` by chunk."""
+        out = np.empty(n)
+        for s in range(0, n, chunk):
+            e = min(n, s + chunk)
+            feats = _as_float64(self.features(h, s, e))
+            nonneg = self.nonnegative
+            if nonneg is None:
+                nonneg = bool((feats >= 0).all())
+            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+        return out
+
+    def take(self, idx) -> NextStates:
+        raise NotImplementedError
+
+
+class StoredNext(NextStates):
+    """Stored next-state features ``(H, K, A, d)`` and optional known values ``(H, K, A)``."""
+
+    def __init__(self, next_phi: Field, next_values: Field | None = None, nonnegative=None):
+        self.next_phi, self.next_values = next_phi, next_values
+        self.n_actions = next_phi.shape[2]
+        self.nonnegative = nonnegative
+        self.has_known_values = next_values is not None
+
+    def features(self, h, start=0, stop=None):
+        return self.next_phi.read(h, start, stop)
+
+    def known(self, h, start=0, stop=None):
+        return None if self.next_values is None else _as_float64(
+            self.next_values.read(h, start, stop))
+
+    def values(self, h, qmax, n, chunk, out=None):
+        field = self.next_phi
+        if isinstance(field, DaskField):
+            v = _dask_values(self, h, qmax)
+            if out is None:
+                return v
+            out[...] = v
+            return out
+        # Two reused buffers (a chunk read in the storage type, then cast to float64): no
+        # fresh allocation, so no page faults, per chunk.
+        out = np.empty(n) if out is None else out
+        shape = (min(chunk, n),) + field.shape[2:]
+        if isinstance(field, FileField):
+            reads = _prefetched(field, h, n, chunk, shape)
+        else:
+            reads = ((s, min(n, s + chunk), field.read(h, s, min(n, s + chunk)))
+                     for s in range(0, n, chunk))
+        f64 = np.empty(shape)
+
+        def float64_rows():
+            for s, e, rows in reads:
+                if not (rows.dtype == np.float64 and rows.flags.c_contiguous):
+                    np.copyto(f64[: e - s], rows)
+                    rows = f64[: e - s]
+                yield s, e, rows
+
+        linear = getattr(qmax, "linear", None)
+        lin = None
+        if linear is not None and self.next_values is None and self.nonnegative is not None:
+            lin = linear(self.nonnegative)
+        if lin is not None:
+            # V = clip(max_a phi_a^T u, 0, upper): one matrix-vector product per chunk into a
+            # reused buffer, the max over actions into the output, one clip at the end.
+            u, upper = lin
+            A, d = field.shape[2], field.shape[3]
+            q = np.empty(shape[0] * A)
+            for s, e, rows in float64_rows():
+                qa = np.matmul(rows.reshape(-1, d), u, out=q[: (e - s) * A]).reshape(e - s, A)
+                if A == 1:
+                    out[s:e] = qa[:, 0]
+                elif A == 2:
+                    np.maximum(qa[:, 0], qa[:, 1], out=out[s:e])
+                else:
+                    np.max(qa, axis=1, out=out[s:e])
+            np.clip(out, 0.0, upper, out=out)
+            return out
+        for s, e, feats in float64_rows():
+            nonneg = self.nonnegative
+            if nonneg is None:
+                nonneg = bool((feats >= 0).all())
+            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+        return out
+
+    def take(self, idx):
+        nv = None if self.next_values is None else ArrayField(self.next_values.take(idx))
+        return StoredNext(ArrayField(self.next_phi.take(idx)), nv, self.nonnegative)
+
+
+class TableNext(NextStates):
+    """Next-state indices ``(H, K)`` into a feature table (finite MDPs): nothing per sample.
+
+    ``table`` is ``(S, A, d)``, or ``(H, S, A, d)`` with row ``h`` the features of the next
+    states of step ``h``; ``known_table (S, A)`` gives known values by next state. ``V_{h+1}``
+    is computed once per state and gathered by index (when ``S <= K``).
+    """
+
+    def __init__(self, index: Field, table: np.ndarray, known_table: np.ndarray | None = None):
+        self.index, self.table, self.known_table = index, table, known_table
+        self.n_actions = table.shape[-2]
+        used = table if table.ndim == 3 else table[: max(index.shape[0] - 1, 1)]
+        self.nonnegative = bool((used >= 0).all())
+        self.has_known_values = known_table is not None
+
+    def _table(self, h):
+        return self.table if self.table.ndim == 3 else self.table[h]
+
+    def features(self, h, start=0, stop=None):
+        return self._table(h)[self.index.read(h, start, stop)]
+
+    def known(self, h, start=0, stop=None):
+        if self.known_table is None:
+            return None
+        return self.known_table[self.index.read(h, start, stop)]
+
+    def values(self, h, qmax, n, chunk):
+        table = _as_float64(self._table(h))
+        if table.shape[0] > n:  # more states than samples: evaluate the sampled ones only
+            return super().values(h, qmax, n, chunk)
+        v_table = qmax(table, self.known_table, self.nonnegative)
+        out = np.empty(n)
+        for s, e, idx in self.index.chunks(h, chunk):
+            np.take(v_table, idx, out=out[s:e])
+        return out
+
+    def take(self, idx):
+        return TableNext(ArrayField(self.index.take(idx)), self.table, self.known_table)
+
+
+class MapNext(NextStates):
+    """Stored next observations ``(H, K, ...)`` and a feature map evaluated chunk by chunk.
+
+    ``feature_map(observations (n, ...), actions (n,)) -> (n, d)``; ``known_values``, when
+    given, maps next observations ``(n, ...)`` to known action values ``(n, A)`` (NaN: learn).
+    """
+
+    def __init__(self, observations: Field, feature_map, n_actions: int, n_features: int,
+                 known_values=None):
+        self.observations, self.feature_map = observations, feature_map
+        self.n_actions, self.n_features = int(n_actions), int(n_features)
+        self.known_values = known_values
+        self.has_known_values = known_values is not None
+        self.nonnegative = None
+
+    def features(self, h, start=0, stop=None):
+        obs = self.observations.read(h, start, stop)
+        n = obs.shape[0]
+        out = np.empty((n, self.n_actions, self.n_features))
+        for a in range(self.n_actions):
+            f = np.asarray(self.feature_map(obs, np.full(n, a)), dtype=float)
+            if f.shape != (n, self.n_features):
+                raise ValueError(
+                    f"feature_map returned shape {f.shape} for {n} next observations; "
+                    f"expected (n, d) = ({n}, {self.n_features})")
+            out[:, a] = f
+        return out
+
+    def known(self, h, start=0, stop=None):
+        if self.known_values is None:
+            return None
+        if isinstance(self.known_values, Field):  # stored known values (H, K, A)
+            return _as_float64(self.known_values.read(h, start, stop))
+        obs = self.observations.read(h, start, stop)
+        kv = np.asarray(self.known_values(obs), dtype=float)
+        if kv.shape != (obs.shape[0], self.n_actions):
+            raise ValueError(f"known_values returned shape {kv.shape}, expected (n, A)")
+        return kv
+
+    def take(self, idx):
+        kv = self.known_values
+        if isinstance(kv, Field):
+            kv = ArrayField(kv.take(idx))
+        return MapNext(ArrayField(self.observations.take(idx)), self.feature_map,
+                       self.n_actions, self.n_features, kv)
+
+
+def _dask_values(nxt: StoredNext, h, qmax):
+    """Next-state values computed on the Dask workers, one task per trajectory chunk."""
+    import dask.array as da
+
+    feats = nxt.next_phi.array[h]
+    nonneg = nxt.nonnegative
+
+    def block(f, k=None):
+        f = np.asarray(f, dtype=np.float64)
+        nn = bool((f >= 0).all()) if nonneg is None else nonneg
+        return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64), nn)
+
+    if nxt.next_values is None:
+        v = da.map_blocks(block, feats, drop_axis=[1, 2], dtype=np.float64)
+    else:
+        kv = nxt.next_values.array[h].rechunk((feats.chunks[0], -1))
+        v = da.map_blocks(block, feats, kv[:, :, None], drop_axis=[1, 2], dtype=np.float64)
+    return np.asarray(v.compute(), dtype=np.float64)

@@ -1,0 +1,208 @@
+"""The step source: the per-step provider the engine reads while fitting."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._fields import CHUNK, ArrayField, DaskField, Field, FileField, MappedField, _as_float64
+from ._next import NextStates, StoredNext
+from ._reads import _prefetched
+
+GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
+
+
+def _dask_products(field: DaskField, h, cols, weights, with_gram):
+    """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` summed on the Dask workers.
+
+    One task per trajectory chunk forms that chunk's products in float64 (the columns, and
+    the weights ``W``, travel to the workers with the graph), Dask adds the partial sums up
+    in a tree, and only the ``d x (d + m)`` sums reach the client: the step's features never
+    do. Equal to the local chunked sums up to the order of the additions.
+    """
+    import dask.array as da
+
+    x = field.array[h]
+    x = x.rechunk((x.chunks[0], -1))  # chunks along trajectories only
+    K, d = x.shape
+    cols = [np.asarray(c, dtype=np.float64) for c in cols]
+    widths = [1 if c.ndim == 1 else int(np.prod(c.shape[1:])) for c in cols]
+    m = sum(widths)
+    y = np.empty((K, m + (0 if weights is None else 1)))
+    if m:
+        y[:, :m] = np.column_stack([c.reshape(K, -1) for c in cols])
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        y[:, :m] *= w[:, None]
+        y[:, m] = w
+    g = d if with_gram else 0
+    width = g + m
+
+    def block(xb, yb):
+        xb = np.asarray(xb, dtype=np.float64)
+        out = np.empty((d, width))
+        if with_gram:
+            xw = xb if weights is None else xb * yb[:, m:]
+            out[:, :d] = xw.T @ xb
+        out[:, g:] = xb.T @ yb[:, :m]
+        return out.reshape(1, d * width)
+
+    nb = len(x.chunks[0])
+    parts = da.map_blocks(block, x, da.from_array(y, chunks=(x.chunks[0], -1)),
+                          chunks=((1,) * nb, (d * width,)), dtype=np.float64)
+    total = np.asarray(parts.sum(axis=0).compute(), dtype=np.float64).reshape(d, width)
+    gram = total[:, :d].copy() if with_gram else None
+    out, at = [], g
+    for c, k in zip(cols, widths, strict=True):
+        piece = total[:, at:at + k]
+        out.append(piece[:, 0].copy() if c.ndim == 1 else piece.reshape((d,) + c.shape[1:]))
+        at += k
+    return gram, out
+
+
+class StepSource:
+    """The per-step provider behind an :class:`~r2pvi.OfflineDataset`.
+
+    ``phi (H, K, d)`` and ``rewards (H, K)`` fields, a :class:`NextStates`, trajectory-major
+    extras and cached facts. The engine calls :meth:`phi_step`, :meth:`rewards_step` and
+    :meth:`next_state_values`; nothing else of the data is read while fitting.
+    """
+
+    def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
+                 nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
+                 sums=None):
+        self.phi, self.rewards, self.next = phi, rewards, nxt
+        self.extras = dict(extras or {})
+        self.nonnegative_phi = nonnegative_phi
+        self.chunk = int(chunk)
+        self.horizon, self.n_trajectories, self.n_features = phi.shape
+        # Phi_h^T Phi_h of every step (float64, no ridge), a cache: stored with the data, or
+        # kept from the first fit that formed them (see gram()).
+        self._grams = [None] * self.horizon if grams is None else list(grams)
+        # Phi_h^T 1 (column sums; E(1) = Lambda^-1 of them), cached the same way.
+        self._sums = [None] * self.horizon if sums is None else list(sums)
+
+    def gram(self, h: int) -> np.ndarray | None:
+        """The unweighted ``Phi_h^T Phi_h (d, d)`` of step ``h`` if known (stored with the
+        dataset or formed by an earlier fit), else None. A copy: the caller may modify it."""
+        g = self._grams[h]
+        return None if g is None else np.array(g, dtype=np.float64)
+
+    def remember_gram(self, h: int, gram: np.ndarray) -> None:
+        """Keep ``Phi_h^T Phi_h`` (formed by a fit) for later fits; kept for
+        ``d <= GRAM_CACHE_MAX_D`` only (``H d^2`` floats)."""
+        if self.n_features <= GRAM_CACHE_MAX_D and self._grams[h] is None:
+            g = np.array(gram, dtype=np.float64)
+            g.flags.writeable = False
+            self._grams[h] = g
+
+    def phi_sums(self, h: int) -> np.ndarray | None:
+        """The column sums ``Phi_h^T 1 (d,)`` of step ``h`` if known (stored with the dataset
+        or formed by an earlier fit), else None. A copy."""
+        c = self._sums[h]
+        return None if c is None else np.array(c, dtype=np.float64)
+
+    def remember_phi_sums(self, h: int, sums: np.ndarray) -> None:
+        """Keep ``Phi_h^T 1`` (formed by a fit) for later fits."""
+        if self._sums[h] is None:
+            c = np.array(sums, dtype=np.float64)
+            c.flags.writeable = False
+            self._sums[h] = c
+
+    @property
+    def n_actions(self) -> int:
+        return self.next.n_actions
+
+    def phi_step(self, h: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Step ``h``'s taken-action features ``(K, d)`` as float64: a view when they are
+        stored so in memory, else written into ``out`` (a reused buffer) or a new array."""
+        field = self.phi
+        if isinstance(field, DaskField) or (isinstance(field, ArrayField) and (
+                field.dtype == np.float64 or out is None)):
+            return _as_float64(field.read(h))
+        shape = (self.n_trajectories, self.n_features)
+        if out is None or out.shape != shape or out.dtype != np.float64:
+            out = np.empty(shape)
+        if isinstance(field, ArrayField):
+            np.copyto(out, field.read(h))
+            return out
+        if isinstance(field, FileField):
+            chunk_shape = (min(self.chunk, shape[0]), shape[1])
+            for s, e, rows in _prefetched(field, h, shape[0], self.chunk, chunk_shape):
+                out[s:e] = rows
+            return out
+        for s in range(0, shape[0], self.chunk):
+            e = min(shape[0], s + self.chunk)
+            out[s:e] = field.read(h, s, e)
+        return out
+
+    def phi_chunks(self, h: int):
+        """``(start, stop, rows)`` over step ``h``'s taken-action features, ``rows`` a float64
+        ``(stop - start, d)`` array valid until the next iteration (reused buffers; on disk
+        a reader thread fetches the next chunk while the caller computes on this one)."""
+        field, K = self.phi, self.n_trajectories
+        shape = (min(self.chunk, K), self.n_features)
+        if isinstance(field, FileField):
+            yield from _prefetched(field, h, K, self.chunk, shape)
+            return
+        reads = field.chunks(h, self.chunk)  # a Dask array: its own chunks
+        f64 = None
+        for s, e, rows in reads:
+            if rows.dtype != np.float64 or not rows.flags.c_contiguous:
+                if f64 is None or f64.shape[0] < e - s:
+                    f64 = np.empty((max(e - s, shape[0]), shape[1]))
+                np.copyto(f64[: e - s], rows)
+                rows = f64[: e - s]
+            yield s, e, rows
+
+    def remote_products(self, h: int, cols, weights=None, with_gram: bool = True):
+        """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` formed where the data
+        is (the Dask workers) for features held as Dask arrays; None for data the client
+        reads itself (memory, files, computed features), which the engine sums by chunk."""
+        if not isinstance(self.phi, DaskField):
+            return None
+        return _dask_products(self.phi, h, cols, weights, with_gram)
+
+    def phi_times(self, h: int, z: np.ndarray) -> np.ndarray:
+        """``Phi_h @ z`` (``(K,)`` or ``(K, m)``, float64): in memory one product, on disk by
+        chunk, for Dask arrays on the workers (one task per trajectory chunk)."""
+        field = self.phi
+        if isinstance(field, DaskField):
+            x = field.array[h]
+            x = x.rechunk((x.chunks[0], -1))
+            out = x.map_blocks(lambda b: np.asarray(b, dtype=np.float64) @ z,
+                               chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
+                               drop_axis=None if z.ndim == 2 else 1)
+            return np.asarray(out.compute(), dtype=np.float64)
+        if isinstance(field, ArrayField) and field.dtype == np.float64:
+            return field.read(h) @ z
+        out = np.empty((self.n_trajectories,) + z.shape[1:])
+        for s, e, rows in self.phi_chunks(h):
+            out[s:e] = rows @ z
+        return out
+
+    def rewards_step(self, h: int) -> np.ndarray:
+        return _as_float64(self.rewards.read(h))
+
+    def next_state_values(self, h: int, qmax, out: np.ndarray | None = None) -> np.ndarray:
+        """``V_{h+1}`` at the K sampled next states; ``qmax(feats (n, A, d), known, nonneg)``;
+        written into ``out (K,)`` when given (returned)."""
+        if out is not None and isinstance(self.next, StoredNext):
+            return self.next.values(h, qmax, self.n_trajectories, self.chunk, out=out)
+        v = self.next.values(h, qmax, self.n_trajectories, self.chunk)
+        if out is None:
+            return v
+        out[...] = v
+        return out
+
+    def take(self, idx) -> StepSource:
+        extras = {}
+        for k, v in self.extras.items():
+            extras[k] = np.asarray(v[idx])
+            extras[k].flags.writeable = False
+        phi = self.phi
+        phi = MappedField(ArrayField(phi.observations.take(idx)),
+                          ArrayField(phi.actions.take(idx)), phi.feature_map,
+                          phi.shape[2]) if isinstance(phi, MappedField) else ArrayField(
+                              phi.take(idx))
+        return StepSource(phi, ArrayField(self.rewards.take(idx)),
+                          self.next.take(idx), extras, self.nonnegative_phi, self.chunk)
