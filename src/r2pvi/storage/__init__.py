@@ -39,6 +39,14 @@ The on-disk format (format version 2) is a directory::
 
 Plain ``.npy`` files (no pickle, ``allow_pickle=False`` on every read), described by a JSON
 manifest with the shapes, dtypes and cached facts (non-negativity of the features).
+
+The modules, each importing only those listed before it: ``_fields`` (the fields, ``CHUNK``),
+``_reads`` (a file step streamed through memory-mapped windows, ``MAP_WINDOW``), ``_next``
+(the next-state forms), ``_format`` (manifest, ``.npy`` headers, atomic directories),
+``_behaviour`` (the behaviour form, ``SIDE_BLOCK``), ``_source`` (:class:`StepSource`),
+``_checks`` (validation), ``_directory`` (:func:`open_directory`, :func:`write_directory`),
+``_writer`` (:class:`DatasetWriter`). This package re-exports their names; a module-level
+constant is read where it is defined, so change it there (e.g. ``storage._reads.MAP_WINDOW``).
 """
 
 from ._behaviour import (  # noqa: F401
