@@ -72,6 +72,7 @@ API_MODULES = [
     ("r2pvi.duals", "Dual formulas and expectation operators"),
     ("r2pvi.features", "Feature maps"),
     ("r2pvi.episodes", "Episodes of any length"),
+    ("r2pvi.storage", "Step-major storage and the on-disk format"),
     ("r2pvi.envs", "Environments"),
     ("r2pvi.envs.perturbations", "Perturbed classic-control environments"),
     ("r2pvi.evaluation", "Exact and Monte Carlo evaluation"),

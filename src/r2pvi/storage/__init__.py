@@ -49,21 +49,18 @@ The modules, each importing only those listed before it: ``_fields`` (the fields
 constant is read where it is defined, so change it there (e.g. ``storage._reads.MAP_WINDOW``).
 """
 
+# The names code, tests, benchmarks and docs reach as ``storage.X`` (private ones included).
 from ._behaviour import (  # noqa: F401
     BEHAVIOUR_VERSION,
     NEXT_FORMS,
     SIDE_BLOCK,
     BehaviourNext,
     RowFile,
-    _action_dtype,
-    _behaviour_files,
     _next_form,
-    _write_behaviour,
     behaviour_split,
 )
 from ._checks import (  # noqa: F401
     SimplexFeatureWarning,
-    _counted,
     check_features_chunk,
     layout_step_major,
     simplex_flags,
@@ -71,13 +68,7 @@ from ._checks import (  # noqa: F401
     validate_source,
     warn_simplex,
 )
-from ._directory import (  # noqa: F401
-    _Computed,
-    _open_behaviour,
-    _stream_field,
-    open_directory,
-    write_directory,
-)
+from ._directory import open_directory, write_directory
 from ._fields import (  # noqa: F401
     CHUNK,
     ArrayField,
@@ -85,41 +76,13 @@ from ._fields import (  # noqa: F401
     Field,
     FileField,
     MappedField,
-    _as_float64,
     _float_dtype,
 )
-from ._format import (  # noqa: F401
-    FORMAT_VERSION,
-    GRAM_FILE,
-    KIND,
-    MANIFEST,
-    SUMS_FILE,
-    _add_gram,
-    _finish,
-    _manifest,
-    _temp_dir,
-    _write_npy_header,
-)
-from ._next import (  # noqa: F401
-    MapNext,
-    NextStates,
-    StoredNext,
-    TableNext,
-    _dask_values,
-)
-from ._reads import (  # noqa: F401
-    MAP_WINDOW,
-    _pread_chunks,
-    _prefetched,
-)
-from ._source import (  # noqa: F401
-    GRAM_CACHE_MAX_D,
-    StepSource,
-    _dask_products,
-)
-from ._writer import (  # noqa: F401
-    DatasetWriter,
-)
+from ._format import FORMAT_VERSION, GRAM_FILE, KIND, MANIFEST, SUMS_FILE  # noqa: F401
+from ._next import MapNext, NextStates, StoredNext, TableNext  # noqa: F401
+from ._reads import MAP_WINDOW, _prefetched  # noqa: F401
+from ._source import GRAM_CACHE_MAX_D, StepSource  # noqa: F401
+from ._writer import DatasetWriter
 
 __all__ = [
     "FORMAT_VERSION",

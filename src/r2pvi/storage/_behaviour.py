@@ -235,10 +235,7 @@ class BehaviourNext(NextStates):
             feats = f64[: e - s]
             o = self._order(index[2], s, e, rows[: e - s], m, order[: e - s])
             np.copyto(feats, self._staged(h, s, e, index, stage, o))
-            nonneg = self.nonnegative
-            if nonneg is None:
-                nonneg = bool((feats >= 0).all())
-            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+            out[s:e] = self._chunk_values(h, s, e, feats, qmax)
         return out
 
     def take(self, idx):

@@ -30,11 +30,15 @@ class NextStates:
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
             feats = _as_float64(self.features(h, s, e))
-            nonneg = self.nonnegative
-            if nonneg is None:
-                nonneg = bool((feats >= 0).all())
-            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+            out[s:e] = self._chunk_values(h, s, e, feats, qmax)
         return out
+
+    def _chunk_values(self, h, s, e, feats, qmax) -> np.ndarray:
+        """``qmax`` at the float64 features ``(n, A, d)`` of samples ``s:e`` of step ``h``."""
+        nonneg = self.nonnegative
+        if nonneg is None:
+            nonneg = bool((feats >= 0).all())
+        return qmax(feats, self.known(h, s, e), nonneg)
 
     def take(self, idx) -> NextStates:
         raise NotImplementedError
@@ -103,10 +107,7 @@ class StoredNext(NextStates):
             np.clip(out, 0.0, upper, out=out)
             return out
         for s, e, feats in float64_rows():
-            nonneg = self.nonnegative
-            if nonneg is None:
-                nonneg = bool((feats >= 0).all())
-            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+            out[s:e] = self._chunk_values(h, s, e, feats, qmax)
         return out
 
     def take(self, idx):
