@@ -22,11 +22,15 @@ from __future__ import annotations
 import numpy as np
 
 from ._scratch import buffer
-from .operators import BLOCK, ExpectationOperator
+from .operators import ExpectationOperator
 
 __all__ = [
     "chi2_objective", "segments_max", "blockwise_max", "dense_max", "tv_ball_max", "BlockScan",
 ]
+
+
+# Breakpoints per block of the branch and bound (a multiple of 16).
+SCAN_BLOCK = 16
 
 
 def chi2_objective(e1, e2, lam, mean_clip=None, second_clip=None, out=None):
@@ -146,23 +150,30 @@ class BlockScan:
     coefficients of the pairs whose bound beats the best value found.
     """
 
-    def __init__(self, E: ExpectationOperator, v, extra=(), second_moment: bool = True):
-        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2)
+    def __init__(self, E: ExpectationOperator, v, extra=(), second_moment: bool = True,
+                 block: int | None = None):
+        self.block = SCAN_BLOCK if block is None else int(block)
+        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2, block=self.block)
         self.alphas = sb.alphas
         s0, s1, s2 = sb.s0, sb.s1, sb.s2
-        self._p0, self._p1 = (np.cumsum(s, axis=1) - s for s in (s0, s1))
-        self._p2 = np.cumsum(s2, axis=1) - s2 if second_moment else None
+        # Sums over the blocks before each block (exclusive running sums, one pass each).
+        self._p0, self._p1 = (_exclusive_cumsum(s, key) for s, key in ((s0, "p0"), (s1, "p1")))
+        self._p2 = _exclusive_cumsum(s2, "p2") if second_moment else None
         self._total = self._p0[:, -1:] + s0[:, -1:]
-        self._tail = self._total - self._p0  # weight of the points at or after a block start
+        # weight of the points at or after a block start
+        self._tail = np.subtract(self._total, self._p0, out=buffer("scan.tail", s0.shape))
         self._s0, self._sabs = s0, sb.sabs
-        self._al3 = sb.alphas.reshape(-1, BLOCK)
+        self._al3 = sb.alphas.reshape(-1, self.block)
         self.start = self._al3[:, 0]
         self.end = np.append(self.start[1:], sb.alphas[-1])
         self.top = float(sb.alphas[-1])
-        self.e1_start = self._p1 + self._tail * self.start
+        self.e1_start = np.multiply(self._tail, self.start, out=buffer("scan.e1", s0.shape))
+        self.e1_start += self._p1
         self.e1_top = self._p1[:, -1] + s1[:, -1]
         if second_moment:
-            self.e2_start = self._p2 + self._tail * self.start**2
+            self.e2_start = np.multiply(self._tail, self.start**2,
+                                        out=buffer("scan.e2", s0.shape))
+            self.e2_start += self._p2
             self.e2_top = self._p2[:, -1] + s2[:, -1]
         self._pairs = sb.pairs
 
@@ -185,10 +196,23 @@ class BlockScan:
         """An upper bound on ``dE1/dalpha`` inside each block."""
         return self._tail - 0.5 * (self._s0 - self._sabs)
 
+    def slope_bounds(self):
+        """``(min(b_lo, 0), max(b_hi, 0))`` in two reused work buffers (the bounds' hot path:
+        four passes instead of the properties' six and two more for the clamps)."""
+        shape = self._s0.shape
+        mid = np.multiply(self._s0, -0.5, out=buffer("scan.mid", shape))
+        mid += self._tail
+        half = np.multiply(self._sabs, 0.5, out=buffer("scan.half", shape))
+        hi = np.add(mid, half, out=buffer("scan.hi", shape))
+        np.maximum(hi, 0.0, out=hi)
+        lo = np.subtract(mid, half, out=mid)
+        np.minimum(lo, 0.0, out=lo)
+        return lo, hi
+
     def report(self, totals: dict | None) -> None:
         """Put ``E_i(1)`` (``"mass"``) and ``E_i(v)`` (``"mean"``) into ``totals`` (if a dict)."""
         if totals is not None:
-            totals["mass"] = self._total[:, 0]
+            totals["mass"] = self._total[:, 0].copy()
             totals["mean"] = self.e1_top
 
     def segments(self, rows, blocks):
@@ -197,7 +221,7 @@ class BlockScan:
         ``E2 = c_k + b_k alpha^2``; the last column is the next block's start, reached by the
         block's last segment (its coefficients repeated). ``c`` is None without the second
         moment."""
-        wb = self._pairs(rows, blocks)  # (P, 16) exact weights
+        wb = self._pairs(rows, blocks)  # (P, block) exact weights
         ab = self._al3[blocks]
         a = self._p1[rows, blocks, None] + np.cumsum(wb * ab, axis=1)
         b = self._total[rows] - (self._p0[rows, blocks, None] + np.cumsum(wb, axis=1))
@@ -209,6 +233,14 @@ class BlockScan:
         return last(a), last(b), last(c), al
 
 
+def _exclusive_cumsum(s, key):
+    """``p[:, j] = sum_{k < j} s[:, k]`` into a reused work buffer."""
+    p = buffer("scan." + key, s.shape)
+    p[:, 0] = 0.0
+    np.cumsum(s[:, :-1], axis=1, out=p[:, 1:])
+    return p
+
+
 def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, extra=(),
                   totals: dict | None = None):
     """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc).
@@ -217,32 +249,66 @@ def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=No
     block sums (no further pass over the data)."""
     scan = BlockScan(E, v, extra)
     scan.report(totals)
-    best = chi2_objective(scan.e1_start, scan.e2_start, lam, mean_clip, second_clip).max(axis=1)
+    shape = scan.e1_start.shape
+    best = chi2_objective(scan.e1_start, scan.e2_start, lam, mean_clip, second_clip,
+                          out=buffer("scan.g", shape)).max(axis=1)
     top = chi2_objective(scan.e1_top, scan.e2_top, lam, mean_clip, second_clip)
     best = np.maximum(best, top)
-    # Bounds on each block: E1 within slope * width of its start, E2 within slope * the
-    # block's range of alpha^2; g grows with E1 (convex in the clipped E1) and falls with E2.
-    # dE1/dalpha = B in [b_lo, b_hi] and dE2 = B d(alpha^2) (alpha^2 monotone on a block that
-    # does not straddle 0; else the cruder bound with |B| <= slope).
-    span1 = scan.end - scan.start
-    start2, end2 = scan.start**2, scan.end**2
-    straddle = (scan.start < 0) & (scan.end > 0)
-    b_lo, b_hi = scan.b_lo, scan.b_hi
-    e1_lo = scan.e1_start + np.minimum(b_lo, 0.0) * span1
-    e1_hi = scan.e1_start + np.maximum(b_hi, 0.0) * span1
-    delta2 = end2 - start2
-    e2_lo = scan.e2_start + np.minimum(np.minimum(b_lo * delta2, b_hi * delta2), 0.0)
-    if straddle.any():
-        span2 = np.maximum(start2, end2)[straddle]
-        e2_lo[:, straddle] = scan.e2_start[:, straddle] - scan.slope[:, straddle] * span2
-    upper = np.maximum(chi2_objective(e1_lo, 0.0, lam, mean_clip),
-                       chi2_objective(e1_hi, 0.0, lam, mean_clip))
-    upper -= 0.25 / lam * (e2_lo if second_clip is None else np.clip(e2_lo, *second_clip))
+    upper = _chi2_block_bounds(scan, lam, mean_clip, second_clip)
     rows, blocks = np.nonzero(upper > best[:, None])
     if rows.size:
         a, b, c, al = scan.segments(rows, blocks)
         np.maximum.at(best, rows, segments_max(a, b, c, al, lam, mean_clip, second_clip))
     return best
+
+
+def _chi2_block_bounds(scan: BlockScan, lam, mean_clip, second_clip):
+    """An upper bound on the chi^2 objective on each (factor, block), ``(d, nb)``.
+
+    E1 lies within the slope bounds times the block's width of its start value, E2 above its
+    start value plus ``min(B, 0) d(alpha^2)``; g grows with E1 where the clipped E1 is at least
+    ``-2 lam`` (then the upper end alone) and is convex in E1 (else the larger end), and falls
+    with E2. ``dE2 = B d(alpha^2)`` with ``alpha^2`` monotone on a block that does not
+    straddle 0 (else the cruder bound with ``|B| <= slope``)."""
+    shape = scan.e1_start.shape
+    lo, hi = scan.slope_bounds()  # min(b_lo, 0), max(b_hi, 0)
+    span1 = scan.end - scan.start
+    delta2 = scan.end**2 - scan.start**2
+    q = 0.25 / lam
+    monotone = mean_clip is not None and mean_clip[0] >= -2.0 * lam and np.isfinite(q)
+    if not monotone:
+        e1_lo = np.multiply(lo, span1, out=buffer("scan.e1lo", shape))
+        e1_lo += scan.e1_start
+    # E2's lower end: B d(alpha^2) >= min(b_lo, 0) d(alpha^2) where d(alpha^2) >= 0 and
+    # max(b_hi, 0) d(alpha^2) where it is negative.
+    e2_lo = np.multiply(lo, np.maximum(delta2, 0.0), out=buffer("scan.e2lo", shape))
+    if scan.start[0] < 0.0:
+        e2_lo += hi * np.minimum(delta2, 0.0)
+    e2_lo += scan.e2_start
+    straddle = (scan.start < 0) & (scan.end > 0)
+    if straddle.any():
+        span2 = np.maximum(scan.start**2, scan.end**2)[straddle]
+        e2_lo[:, straddle] = scan.e2_start[:, straddle] - scan.slope[:, straddle] * span2
+    e1_hi = np.multiply(hi, span1, out=hi)
+    e1_hi += scan.e1_start
+    upper = _g_of_mean(e1_hi, q, mean_clip, "scan.up")
+    if not monotone:
+        np.maximum(upper, _g_of_mean(e1_lo, q, mean_clip, "scan.up2"), out=upper)
+    if second_clip is not None:
+        np.clip(e2_lo, *second_clip, out=e2_lo)
+    e2_lo *= q
+    upper -= e2_lo
+    return upper
+
+
+def _g_of_mean(e1, q, mean_clip, key):
+    """``c + q c^2`` with ``c`` the clipped ``e1`` (clipped in place), into a work buffer."""
+    if mean_clip is not None:
+        np.clip(e1, *mean_clip, out=e1)
+    g = np.multiply(e1, e1, out=buffer(key, e1.shape))
+    g *= q
+    g += e1
+    return g
 
 
 def tv_ball_max(E: ExpectationOperator, v, rho, totals: dict | None = None) -> np.ndarray:
@@ -251,10 +317,17 @@ def tv_ball_max(E: ExpectationOperator, v, rho, totals: dict | None = None) -> n
     ``totals`` as in :func:`blockwise_max`."""
     scan = BlockScan(E, v, second_moment=False)
     scan.report(totals)
-    f_start = scan.e1_start - rho[:, None] * scan.start
+    shape = scan.e1_start.shape
+    rho_col = rho[:, None]
+    f_start = np.multiply(rho_col, scan.start, out=buffer("scan.f", shape))
+    np.subtract(scan.e1_start, f_start, out=f_start)
     best = np.maximum(f_start.max(axis=1), scan.e1_top - rho * scan.top)
     # d/dalpha (E1 - rho alpha) = B - rho <= b_hi - rho inside a block.
-    upper = f_start + (scan.end - scan.start) * np.maximum(scan.b_hi - rho[:, None], 0.0)
+    # max(max(b_hi, 0) - rho, 0) = max(b_hi - rho, 0) as rho >= 0
+    upper = np.subtract(scan.slope_bounds()[1], rho_col, out=buffer("scan.up", shape))
+    np.maximum(upper, 0.0, out=upper)
+    upper *= scan.end - scan.start
+    upper += f_start
     rows, blocks = np.nonzero(upper > best[:, None])
     if rows.size:
         a, b, _, al = scan.segments(rows, blocks)
