@@ -22,15 +22,11 @@ from __future__ import annotations
 import numpy as np
 
 from ._scratch import buffer
-from .operators import ExpectationOperator
+from .operators import BLOCK, ExpectationOperator
 
 __all__ = [
     "chi2_objective", "segments_max", "blockwise_max", "dense_max", "tv_ball_max", "BlockScan",
 ]
-
-
-# Breakpoints per block of the branch and bound (a multiple of 16).
-SCAN_BLOCK = 16
 
 
 def chi2_objective(e1, e2, lam, mean_clip=None, second_clip=None, out=None):
@@ -147,13 +143,12 @@ class BlockScan:
     alpha ``[start, end]`` (``end`` is the next block's start, the largest value for the last),
     and ``E1``, ``E2`` at the largest value (``e1_top``, ``e2_top``, at ``top``). A dual then
     bounds its objective per (factor, block) and asks :meth:`segments` for the exact segment
-    coefficients of the pairs whose bound beats the best value found.
+    coefficients of the pairs whose bound beats the best value found. The (d, nb) arrays live
+    in reused work buffers: valid until the next scan in the same thread.
     """
 
-    def __init__(self, E: ExpectationOperator, v, extra=(), second_moment: bool = True,
-                 block: int | None = None):
-        self.block = SCAN_BLOCK if block is None else int(block)
-        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2, block=self.block)
+    def __init__(self, E: ExpectationOperator, v, extra=(), second_moment: bool = True):
+        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2)
         self.alphas = sb.alphas
         s0, s1, s2 = sb.s0, sb.s1, sb.s2
         # Sums over the blocks before each block (exclusive running sums, one pass each).
@@ -163,7 +158,7 @@ class BlockScan:
         # weight of the points at or after a block start
         self._tail = np.subtract(self._total, self._p0, out=buffer("scan.tail", s0.shape))
         self._s0, self._sabs = s0, sb.sabs
-        self._al3 = sb.alphas.reshape(-1, self.block)
+        self._al3 = sb.alphas.reshape(-1, BLOCK)
         self.start = self._al3[:, 0]
         self.end = np.append(self.start[1:], sb.alphas[-1])
         self.top = float(sb.alphas[-1])
@@ -221,7 +216,7 @@ class BlockScan:
         ``E2 = c_k + b_k alpha^2``; the last column is the next block's start, reached by the
         block's last segment (its coefficients repeated). ``c`` is None without the second
         moment."""
-        wb = self._pairs(rows, blocks)  # (P, block) exact weights
+        wb = self._pairs(rows, blocks)  # (P, 16) exact weights
         ab = self._al3[blocks]
         a = self._p1[rows, blocks, None] + np.cumsum(wb * ab, axis=1)
         b = self._total[rows] - (self._p0[rows, blocks, None] + np.cumsum(wb, axis=1))
