@@ -6,6 +6,7 @@ reports the process's peak resident memory (``VmHWM``; see :func:`peak_rss_mib`)
     python benchmarks/bench_storage.py disk --K 1000000          # features stored, float32
     python benchmarks/bench_storage.py scaling --Ks 1e5 1e6 1e7  # observations + feature map
     python benchmarks/bench_storage.py float32                   # float32 vs float64 storage
+    python benchmarks/bench_storage.py behaviour --Ks 1e5 1e6    # next_form full vs behaviour
 
 ``disk``: K trajectories (d = 30, H = 20, A = 2, synthetic simplex features, float32) written
 with ``r2pvi.DatasetWriter``; then the time to read the whole dataset once from the page
@@ -20,6 +21,12 @@ feature map (d = 30), written with ``OfflineDataset.from_observations(...).save(
 then the R2PVI-TV fit time for each K. The features are computed chunk by chunk while
 fitting (the Gram matrix and the regressions are accumulated by chunk: nothing of size K d is
 held); the fitted model keeps the (H, K) next-state values.
+
+``behaviour``: trajectories whose next state is the next step's state
+(``phi[:, h+1] = next_phi[:, h, a_{h+1}]``, the behaviour action ``a_{h+1}`` uniform; d = 30,
+H = 20, A = 2, float32), written by ``DatasetWriter`` with ``next_form="full"`` and
+``next_form="behaviour"``; then the bytes on disk, the time to read each dataset once from the
+page cache and the R2PVI-TV fit time of each (the weights must be bitwise equal).
 
 Data goes to ``--dir`` (default ``/tmp/r2pvi-bench``); check ``df -h`` first: the K = 1e6
 feature dataset takes 7.3 GB, the K = 1e7 observation dataset 5 GB. ``--keep`` reuses data
@@ -102,6 +109,27 @@ def write_features(path: Path, K: int, chunk: int = 20_000, seed: int = 0):
             w.append(phi, rewards, nphi)
 
 
+def write_trajectories(path: Path, K: int, next_form: str, chunk: int = 20_000, seed: int = 0):
+    """Trajectories: the next state of step h is the state of step h+1 (see ``behaviour``)."""
+    from r2pvi import DatasetWriter
+
+    rng = np.random.default_rng(seed)
+    th = theta()
+    with DatasetWriter(path, horizon=H, n_features=D, n_actions=A, dtype="float32",
+                       overwrite=True, next_form=next_form) as w:
+        for s in range(0, K, chunk):
+            k = min(chunk, K - s)
+            nphi = rng.random((k, H, A, D), dtype=np.float32)
+            nphi /= nphi.sum(-1, keepdims=True)
+            phi = np.empty((k, H, D), dtype=np.float32)
+            phi[:, 0] = rng.random((k, D), dtype=np.float32)
+            phi[:, 0] /= phi[:, 0].sum(-1, keepdims=True)
+            taken = rng.integers(A, size=(k, H - 1))  # the behaviour actions a_1 .. a_{H-1}
+            phi[:, 1:] = nphi[np.arange(k)[:, None], np.arange(H - 1), taken]
+            rewards = np.einsum("khd,hd->kh", phi, th)
+            w.append(phi, rewards, nphi)
+
+
 def write_observations(path: Path, K: int, seed: int = 0):
     from r2pvi import OfflineDataset
 
@@ -143,7 +171,7 @@ def child(task: dict) -> dict:
     from threadpoolctl import threadpool_limits
 
     from r2pvi import OfflineDataset
-    from r2pvi.storage import CHUNK, FileField
+    from r2pvi.storage import CHUNK, FileField, RowFile
 
     threadpool_limits(task["blas_threads"])
     path = Path(task["path"])
@@ -151,6 +179,11 @@ def child(task: dict) -> dict:
     if task["what"] == "read":  # every file once, by chunk into one reused buffer
         total = 0
         for f in sorted(path.glob("*.npy")):
+            if f.name.startswith("next_side"):  # the behaviour form's side table: (n, ...)
+                rows = RowFile(f)
+                for s in range(0, rows.shape[0], CHUNK * 20):
+                    total += rows.read(s, min(rows.shape[0], s + CHUNK * 20)).nbytes
+                continue
             field = FileField(f)
             buf = np.empty((min(CHUNK, field.shape[1]),) + field.shape[2:], field.dtype)
             for h in range(field.shape[0]):
@@ -162,7 +195,8 @@ def child(task: dict) -> dict:
         fmap = rbf_action_map if task.get("map") else None
         ds = OfflineDataset.open(path, feature_map=fmap)
         est = estimator(task["what"]).fit(ds)
-        out = {"weights_sum": float(est.weights_.sum())}
+        out = {"weights_sum": float(est.weights_.sum()),
+               "weights_hex": est.weights_.tobytes().hex()}
     out["seconds"] = time.perf_counter() - t0
     out["cpu_seconds"] = time.process_time() - c0  # every thread of the process
     out["load"] = os.getloadavg()[0]
@@ -237,6 +271,40 @@ def scaling(args):
               f"{r['peak_rss_mib']:13.0f} {r['load']:5.1f}", flush=True)
 
 
+def behaviour(args):
+    """Bytes on disk and TV fit time of the full and the behaviour next-state form."""
+    print(f"trajectories, d = {D}, H = {H}, A = {A}, float32; R2PVI-TV from disk (page cache)")
+    print(f"{'K':>8} {'form':>9} {'write s':>8} {'GiB':>6} {'x full':>6} {'read s':>7} "
+          f"{'read CPU':>8} {'TV s':>6} {'TV CPU':>7} {'x read':>6} {'RSS MiB':>8} {'load':>5}",
+          flush=True)
+    for K in (int(float(k)) for k in args.Ks):
+        fits, sizes = {}, {}
+        for form in ("full", "behaviour"):
+            path = Path(args.dir) / f"traj-{form}-K{K}"
+            wrote = float("nan")
+            if not (args.keep and (path / "manifest.json").exists()):
+                from threadpoolctl import threadpool_limits
+
+                t0 = time.perf_counter()
+                with threadpool_limits(BLAS_THREADS):
+                    write_trajectories(path, K, form)
+                wrote = time.perf_counter() - t0
+            sizes[form] = dir_size(path)
+            run_child(what="read", path=str(path))  # warm the page cache
+            read = run_child(what="read", path=str(path))
+            fits[form] = r = run_child(what="R2PVI-TV", path=str(path))
+            print(f"{K:>8} {form:>9} {wrote:8.1f} {sizes[form] / 2**30:6.2f} "
+                  f"{sizes[form] / sizes['full']:6.3f} {read['seconds']:7.2f} "
+                  f"{read['cpu_seconds']:8.2f} {r['seconds']:6.2f} {r['cpu_seconds']:7.2f} "
+                  f"{r['seconds'] / read['seconds']:6.2f} {r['peak_rss_mib']:8.0f} "
+                  f"{r['load']:5.1f}", flush=True)
+        same = fits["full"]["weights_hex"] == fits["behaviour"]["weights_hex"]
+        print(f"{K:>8} TV weights bitwise equal across the forms: {same}", flush=True)
+        if not args.keep:
+            for form in fits:
+                shutil.rmtree(Path(args.dir) / f"traj-{form}-K{K}")
+
+
 def float32(args):
     """float32 storage against float64 on bench_fit.py's data (K = 1e4, d = 30, H = 20)."""
     sys.path.insert(0, str(Path(__file__).parent))
@@ -265,7 +333,9 @@ def main(argv=None):
                    default=["R2PVI-TV", "R2PVI-KL", "R2PVI-chi2", "DRPVI"])
     s = sub.add_parser("scaling")
     s.add_argument("--Ks", nargs="*", default=["1e5", "1e6", "1e7"])
-    for p in (d, s):
+    b = sub.add_parser("behaviour")
+    b.add_argument("--Ks", nargs="*", default=["1e5", "1e6"])
+    for p in (d, s, b):
         p.add_argument("--dir", default=os.environ.get("R2PVI_BENCH_DIR", "/tmp/r2pvi-bench"))
         p.add_argument("--keep", action="store_true", help="reuse data already written")
         p.add_argument("--blas-threads", type=int, default=1,
@@ -276,7 +346,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     global BLAS_THREADS
     BLAS_THREADS = args.blas_threads
-    {"disk": disk, "scaling": scaling, "float32": float32}[args.cmd](args)
+    {"disk": disk, "scaling": scaling, "float32": float32,
+     "behaviour": behaviour}[args.cmd](args)
 
 
 if __name__ == "__main__":

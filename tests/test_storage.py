@@ -324,19 +324,42 @@ def cluster_client():
     cluster.close()
 
 
-def test_dask_arrays_on_a_local_cluster_fit_as_in_memory(cluster_client):
+def dask_and_memory(chunk):
+    """The same data as Dask arrays (``chunk`` trajectories per block) and in memory."""
     da = pytest.importorskip("dask.array")
-    phi, rewards, nphi, nv = make_arrays()
-    mem = OfflineDataset.from_features(phi, rewards, nphi, nv)
-    ds = OfflineDataset.from_dask(da.from_array(phi, chunks=(250, -1, -1)),
-                                  da.from_array(rewards, chunks=(250, -1)),
-                                  da.from_array(nphi, chunks=(250, -1, -1, -1)),
-                                  da.from_array(nv, chunks=(250, -1, -1)))
+    arrays = make_arrays()
+    ds = OfflineDataset.from_dask(*(da.from_array(a, chunks=(chunk,) + (-1,) * (a.ndim - 1))
+                                    for a in arrays))
+    return ds, OfflineDataset.from_features(*arrays)
+
+
+def test_dask_arrays_on_a_local_cluster_fit_as_in_memory(cluster_client):
+    ds, mem = dask_and_memory(250)
+    phi, rewards, nphi, _ = make_arrays()
     assert ds.storage == "dask" and ds.n_trajectories == K
     for name in ("TV", "chi2"):
         assert_same_fit(ESTIMATORS[name]().fit(ds), ESTIMATORS[name]().fit(mem))
     with pytest.raises(TypeError, match="dask.array"):
         OfflineDataset.from_dask(phi, rewards, nphi)
+
+
+def test_dask_products_are_summed_on_the_workers(cluster_client):
+    """TV, KL and PEVI steps need only ``Lambda`` and ``Phi^T y``: those are formed on the
+    workers, so the client never reads the step's features (any read raises here); chi^2
+    reads them (explicit rows). Weighted (variance-aware) fits too."""
+    ds, mem = dask_and_memory(170)
+    field = ds._source.phi
+
+    def no_client_reads(*args, **kwargs):
+        raise AssertionError("the step's features were read on the client")
+
+    field.read = field.chunks = no_client_reads
+    for name in ("TV", "KL", "PEVI"):
+        assert_same_fit(ESTIMATORS[name]().fit(ds), ESTIMATORS[name]().fit(mem))
+    va = {"variance_aware": True}
+    assert_same_fit(r2pvi.R2PVI("tv", **va).fit(ds), r2pvi.R2PVI("tv", **va).fit(mem))
+    with pytest.raises(AssertionError, match="read on the client"):
+        ESTIMATORS["chi2"]().fit(ds)
 
 
 def test_actions_with_known_values_need_no_features(tmp_path):

@@ -69,9 +69,9 @@ def as_index_array(x, name: str, n: int, ndim: int | None = None) -> np.ndarray:
         not np.all(np.isfinite(arr)) or not np.all(arr == np.round(arr))
     ):
         raise TypeError(f"{name} must be integer indices, got non-integer values")
-    arr = arr.astype(np.int64)
+    arr = arr.astype(np.int64)  # always a copy: the result is the caller's to keep
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
-    if arr.size and ((arr < 0) | (arr >= n)).any():
+    if arr.size and (arr.min() < 0 or arr.max() >= n):  # two reductions, no temporaries
         raise ValueError(f"{name} must lie in [0, {n}), got values from {arr.min()} to {arr.max()}")
     return arr

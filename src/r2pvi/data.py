@@ -246,8 +246,9 @@ class OfflineDataset:
         if check_simplex:
             used = tab if tab.ndim == 3 else tab[: max(H - 1, 1)]
             check_simplex_features(used, "table")
-        extras = _check_extras(K, H, A, states=states, actions=actions, next_states=idx)
-        ix = np.ascontiguousarray(idx.T)
+        ix = np.array(idx.T, order="C", copy=True)  # private, step-major; ix.T is the extra
+        extras = _check_extras(K, H, A, _owned=("next_states",), states=states,
+                               actions=actions, next_states=ix.T)
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi)
         return cls(_source=source)
@@ -637,6 +638,29 @@ class OfflineDataset:
         """Step ``h``'s taken-action features ``(K, d)`` in float64 (a view when stored so)."""
         return self._source.phi_step(h)
 
+    def step_times(self, h: int, z) -> np.ndarray:
+        """``phi_h @ z``: step ``h``'s taken-action features times ``z`` (``(d,)`` or
+        ``(d, m)``), in float64, formed chunk by chunk where the data is (on the workers for
+        Dask arrays), so only the ``K`` (or ``K x m``) products are held.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> rng = np.random.default_rng(0)
+        >>> ds = OfflineDataset.from_features(rng.dirichlet(np.ones(3), (5, 2)),
+        ...                                   np.zeros((5, 2)),
+        ...                                   rng.dirichlet(np.ones(3), (5, 2, 2)))
+        >>> z = np.array([1.0, -1.0, 2.0])
+        >>> bool(np.allclose(ds.step_times(1, z), ds.phi[:, 1] @ z))
+        True
+        """
+        z = np.asarray(z, dtype=np.float64)
+        if z.ndim not in (1, 2) or z.shape[0] != self.n_features:
+            raise ValueError(f"z must have shape (d,) or (d, m) with d = {self.n_features}, "
+                             f"got {z.shape}")
+        return self._source.phi_times(h, z)
+
     def subset(self, indices) -> OfflineDataset:
         """The dataset restricted to the trajectories ``indices`` (for bootstraps, splits);
         in memory, whatever the storage."""
@@ -660,11 +684,16 @@ class OfflineDataset:
         )
 
     # ------------------------------------------------------------------ I/O
-    def save(self, path, *, dtype=None, overwrite: bool = False) -> Path:
+    def save(self, path, *, dtype=None, overwrite: bool = False,
+             next_form: str = "full") -> Path:
         """Save in the on-disk format: a directory of step-major ``.npy`` files and a JSON
         manifest (format version 2), written in a temporary directory and renamed into
         place. A path ending in ``.npz`` writes the legacy single-file format (version 1).
         Returns the path written. Open it lazily with :meth:`open` (any size).
+
+        ``next_form="behaviour"`` stores the next-state features without each sample's row
+        that equals the next step's taken-action features ``phi[k, h+1]`` (see
+        :class:`~r2pvi.DatasetWriter`); the fits are bitwise the same.
 
         Examples
         --------
@@ -678,10 +707,15 @@ class OfflineDataset:
         (['gram.npy', 'manifest.json', 'next_phi.npy', 'phi.npy', 'rewards.npy'], 2)
         """
         p = Path(os.fspath(path))
+        next_form = _st._next_form(next_form)
         if p.suffix == ".npz":
+            if next_form != "full":
+                raise ValueError("the legacy .npz format stores next_phi whole: use a "
+                                 "directory path for next_form='behaviour'")
             return self._save_npz(p)
         dtype = None if dtype is None else _st._float_dtype(dtype)
-        return _st.write_directory(self._source, p, dtype=dtype, overwrite=overwrite)
+        return _st.write_directory(self._source, p, dtype=dtype, overwrite=overwrite,
+                                   next_form=next_form)
 
     def _save_npz(self, path):
         arrays = {
@@ -736,7 +770,10 @@ class OfflineDataset:
             raise file_error(path, None, f"holds invalid data: {exc}") from None
 
 
-def _check_extras(K, H, A, **given) -> dict:
+def _check_extras(K, H, A, _owned=(), **given) -> dict:
+    """Observed states, actions, next states: checked, kept private and read-only.
+
+    ``_owned`` names arrays the dataset already owns (made here, never the caller's)."""
     extras = {}
     for name, value in given.items():
         if value is None:
@@ -744,10 +781,12 @@ def _check_extras(K, H, A, **given) -> dict:
         arr = np.asarray(value)
         if arr.shape[:2] != (K, H):
             raise ValueError(f"{name} must start with (K, H) = {(K, H)}, got {arr.shape}")
+        owned = name in _owned
         if name == "actions":
             arr = as_index_array(arr, "actions", A, ndim=2)
+            owned = True  # as_index_array returns a new array
         # A private, read-only copy: the caller's array is neither shared nor mutable here.
-        extras[name] = _readonly(np.array(arr, copy=True))
+        extras[name] = _readonly(arr if owned else np.array(arr, copy=True))
     return extras
 
 

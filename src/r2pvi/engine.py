@@ -343,7 +343,14 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         gram = np.zeros((d, d)) if self._factor is None else None
         acc = [np.zeros((d,) + c.shape[1:]) for c in cols]
         w = self.weights
-        for s, e, rows in self.source.phi_chunks(self.h):
+        # Dask arrays: the products are summed on the workers; otherwise here, by chunk.
+        sums = self.source.remote_products(self.h, cols, w, gram is not None)
+        if sums is not None:
+            if gram is not None:
+                gram += sums[0]
+            for a, r in zip(acc, sums[1], strict=True):
+                a += r
+        for s, e, rows in (() if sums is not None else self.source.phi_chunks(self.h)):
             if gram is not None:
                 xw = rows if w is None else rows * w[s:e, None]
                 gram += xw.T @ rows  # a symmetric rank-k update when unweighted

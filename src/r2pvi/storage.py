@@ -11,8 +11,9 @@ one range of trajectories at a time, wherever they are:
 - :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
 
 Next-state features are computed where they need not be stored (:class:`StoredNext`,
-:class:`TableNext` for finite MDPs, :class:`MapNext` for stored observations and a feature
-map), and the engine asks for the next-state values ``V_{h+1}`` chunk by chunk through
+:class:`BehaviourNext` for trajectories, whose taken action's row is the next step's
+features, :class:`TableNext` for finite MDPs, :class:`MapNext` for stored observations and a
+feature map), and the engine asks for the next-state values ``V_{h+1}`` chunk by chunk through
 :meth:`StepSource.next_state_values`.
 
 The on-disk format (format version 2) is a directory::
@@ -24,6 +25,10 @@ The on-disk format (format version 2) is a directory::
     next_index.npy       (H, K)        next-state indices into
     next_table.npy       (S, A, d) or (H, S, A, d)   a feature table (row h of a 4-D table
                                        holds the features used for the next states of step h)
+    next_action.npy      (H, K)        or the behaviour form: the action whose row is
+    next_rest.npy        (H, K, A-1, d)  phi[k, h+1] (-1: none), the other actions' rows,
+    next_side.npy        (n_side, d)   the rows where none matched, by step (offsets
+    next_side_offsets.npy (H+1,)       into next_side); see BehaviourNext
     next_values.npy      (H, K, A)     known next-state action values (NaN: learn); optional
     next_table_values.npy (S, A)       known values by next state (table form); optional
     extra_<name>.npy     (K, H, ...)   observed states, actions, next states; optional
@@ -51,6 +56,9 @@ __all__ = [
     "FileField",
     "DaskField",
     "StoredNext",
+    "BehaviourNext",
+    "RowFile",
+    "behaviour_split",
     "TableNext",
     "MapNext",
     "MappedField",
@@ -415,6 +423,242 @@ class MapNext(NextStates):
                        self.n_actions, self.n_features, kv)
 
 
+# --------------------------------------------------------------------------- behaviour form
+NEXT_FORMS = ("full", "behaviour")
+BEHAVIOUR_VERSION = 1  # version of the "behaviour" next-state field set in the manifest
+
+
+def _next_form(next_form) -> str:
+    if next_form not in NEXT_FORMS:
+        raise ValueError(f"next_form must be 'full' or 'behaviour', got {next_form!r}")
+    return next_form
+
+
+def _action_dtype(n_actions: int) -> np.dtype:
+    """The smallest signed integer type holding ``-1 .. A-1``."""
+    for dt in (np.int8, np.int16, np.int32):
+        if n_actions <= np.iinfo(dt).max:
+            return np.dtype(dt)
+    return np.dtype(np.int64)
+
+
+def behaviour_split(following, rows):
+    """Split one step's next-state rows into the behaviour form.
+
+    ``rows (n, A, d)`` are the next-state features of every action of ``n`` samples of step
+    ``h``; ``following (n, d)`` the same samples' taken-action features at step ``h+1``
+    (``phi[:, h+1]``, in the storage type), or None for the last step. Returns
+
+    - ``action (n,)``: the first action ``a`` with ``rows[i, a]`` bitwise equal to
+      ``following[i]`` (that row is then not stored), or -1 where none is (episode ends,
+      padding, independent transitions, NaN rows of known values, the last step);
+    - ``rest (n, A-1, d)``: the rows of every action but ``m_i`` (``m_i = action[i]``, or 0
+      where ``action[i] = -1``), in increasing action order;
+    - ``side (n_side, d)``: ``rows[i, 0]`` of the samples with ``action[i] = -1``, in order.
+
+    Bitwise equality (not ``==``) makes the rebuilt rows the stored ones exactly: ``-0.0`` and
+    ``0.0`` or two NaN payloads are told apart.
+    """
+    n, A, _ = rows.shape
+    if following is None or A == 0:
+        action = np.full(n, -1, dtype=_action_dtype(A))
+    else:
+        u = np.dtype(f"u{rows.dtype.itemsize}")
+        eq = (rows.view(u) == following.view(u)[:, None, :]).all(axis=2)
+        hit = eq.any(axis=1)
+        action = np.where(hit, eq.argmax(axis=1), -1).astype(_action_dtype(A))
+    missing = np.maximum(action, 0)
+    keep = np.ones((n, A), dtype=bool)
+    keep[np.arange(n), missing] = False
+    rest = rows[keep].reshape(n, A - 1, rows.shape[2])
+    side = rows[action < 0, 0]
+    return action, rest, side
+
+
+class RowFile:
+    """Rows ``(n, ...)`` of a ``.npy`` file read by range with ``pread`` (the side table)."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        with open(self.path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0)
+            shape, fortran, dtype = read(fh)
+            self.offset = fh.tell()
+        if fortran or dtype.hasobject or len(shape) < 1:
+            raise ValueError(f"{self.path} is not a C-ordered numeric .npy file")
+        self.shape, self.dtype = tuple(shape), np.dtype(dtype)
+        self._row = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
+        size = self.offset + self.shape[0] * self._row
+        if os.path.getsize(self.path) < size:
+            raise ValueError(f"{self.path} is truncated: expected {size} bytes")
+
+    def read(self, start, stop):
+        out = np.empty((stop - start,) + self.shape[1:], dtype=self.dtype)
+        if out.nbytes:
+            with open(self.path, "rb") as fh:
+                fh.seek(self.offset + start * self._row)
+                if fh.readinto(memoryview(out.reshape(-1).view(np.uint8))) != out.nbytes:
+                    raise OSError(f"unexpected end of {self.path}")
+        return out
+
+
+SIDE_BLOCK = 4096  # side-table positions are kept per block of samples (one count each)
+
+
+class BehaviourNext(NextStates):
+    """Next-state features stored without the behaviour action's row: ``phi[:, h+1]``.
+
+    For sample ``(k, h)`` the trajectory's next taken action ``a = action[h, k]`` has the
+    next-state features ``next_phi[k, h, a] = phi[k, h+1]`` (bitwise, as stored), so only the
+    other ``A - 1`` rows are stored (``rest (H, K, A-1, d)``). Where the identity breaks
+    (``action = -1``: episode ends, padding, independent transitions, rows of known values,
+    the last step) the missing row (action 0's) is in a side table: ``side (n_side, d)``,
+    step by step and in trajectory order within a step, ``offsets (H+1,)`` its step bounds.
+    :meth:`features` rebuilds exactly the rows of the full form.
+
+    ``phi`` is the dataset's taken-action field (read at step ``h+1``); ``side`` is an array
+    or a :class:`RowFile`.
+    """
+
+    def __init__(self, action: Field, rest: Field, phi: Field, side, offsets,
+                 next_values: Field | None = None, nonnegative=None):
+        self.action, self.rest, self.phi, self.side = action, rest, phi, side
+        self.offsets = np.asarray(offsets, dtype=np.int64)
+        self.next_values = next_values
+        self.n_actions = rest.shape[2] + 1
+        self.nonnegative = nonnegative
+        self.has_known_values = next_values is not None
+        # (h, actions (K,), side rows before each (K+1,), staged block of each row (K, A))
+        self._step = (None, None, None, None)
+
+    def _index(self, h):
+        """Step ``h``'s behaviour actions and side-table positions (validated, cached)."""
+        if self._step[0] != h:
+            act = np.asarray(self.action.read(h))
+            A = self.n_actions
+            if act.size and (act.min() < -1 or act.max() >= A):
+                raise ValueError(f"next_action of step {h} holds values outside [-1, {A}): "
+                                 "the dataset is corrupt")
+            # side rows before sample s: before[s // SIDE_BLOCK] + those in the block to s
+            miss = act < 0
+            K = act.size
+            blocks = np.zeros(K // SIDE_BLOCK + 2, dtype=np.int64)
+            full = K // SIDE_BLOCK * SIDE_BLOCK
+            np.cumsum(np.count_nonzero(miss[:full].reshape(-1, SIDE_BLOCK), axis=1),
+                      out=blocks[1:-1])
+            blocks[-1] = blocks[-2] + np.count_nonzero(miss[full:])
+            want = int(self.offsets[h + 1] - self.offsets[h])
+            if blocks[-1] != want:
+                raise ValueError(
+                    f"next_action of step {h} marks {blocks[-1]} samples as side-table rows "
+                    f"but next_side_offsets gives {want}: the dataset is corrupt")
+            if h == self.rest.shape[0] - 1 and blocks[-1] != K:
+                raise ValueError("next_action of the last step must be -1 everywhere (no step "
+                                 "h+1): the dataset is corrupt")
+            # block[a, i]: the stage block holding out[i, a] (0: row m_i, 1 + j: rest[i, j])
+            m = np.maximum(act, 0)
+            block = np.empty((A, K), act.dtype)
+            for a in range(A):  # one action at a time: no broadcasts over a tiny axis
+                np.greater(m, a, out=block[a], casting="unsafe")
+                block[a] += a
+                block[a] *= m != a
+            self._step = (h, act, (miss, blocks), block)
+        return self._step[1:]
+
+    def _order(self, block, start, stop, rows, m, out=None):
+        """``(n, A)`` stage rows of ``out[i, a]``: ``block[a, i] * m + rows[i]``."""
+        A = block.shape[0]
+        order = np.empty((stop - start, A), dtype=np.intp) if out is None else out
+        for a in range(A):
+            np.multiply(block[a, start:stop], m, out=order[:, a], dtype=np.intp)
+            order[:, a] += rows
+        return order
+
+    def _side(self, h, start, stop, before):
+        miss, blocks = before
+
+        def count(s):
+            b = s // SIDE_BLOCK
+            return int(blocks[b]) + np.count_nonzero(miss[b * SIDE_BLOCK:s])
+
+        lo = int(self.offsets[h]) + count(start)
+        hi = lo + np.count_nonzero(miss[start:stop])
+        return self.side.read(lo, hi) if isinstance(self.side, RowFile) else self.side[lo:hi]
+
+    def _staged(self, h, start, stop, index, stage, order):
+        """The rows of samples ``start:stop`` as ``(n, A, d)`` in the storage type.
+
+        ``stage (A, m, d)`` (``m >= n``) is a reused buffer: block 0 receives each sample's
+        row ``m_i`` (``phi[k, h+1]``, read straight into it, or the side table's row), blocks
+        1.. the stored rows of the other actions; one gather of whole rows (``d`` floats
+        each, as opaque bytes) by ``order (n, A)`` (:meth:`_order`) puts them in action
+        order."""
+        n = stop - start
+        A, m, d = stage.shape
+        before = index[1]
+        miss = before[0][start:stop]
+        src = stage[0, :n]
+        any_miss = bool(miss.any())
+        if h + 1 < self.phi.shape[0] and not (any_miss and miss.all()):
+            got = (self.phi.read(h + 1, start, stop, out=src) if isinstance(self.phi, FileField)
+                   else self.phi.read(h + 1, start, stop))
+            if got is not src:
+                np.copyto(src, got)
+        if any_miss:
+            src[miss] = self._side(h, start, stop, before)
+        if A == 2 and isinstance(self.rest, FileField):
+            dst = stage[1, :n].reshape(n, 1, d)
+            got = self.rest.read(h, start, stop, out=dst)
+            if got is not dst:
+                np.copyto(dst, got)
+        elif A > 1:
+            np.copyto(stage[1:, :n], np.moveaxis(self.rest.read(h, start, stop), 1, 0))
+        # out[i, a] is row order[i, a] of the stage
+        whole = stage.reshape(A * m, d).view(np.dtype((np.void, d * stage.itemsize)))
+        return np.take(whole.reshape(-1), order.reshape(-1)).view(stage.dtype).reshape(n, A, d)
+
+    def features(self, h, start=0, stop=None):
+        K = self.rest.shape[1]
+        stop = K if stop is None else min(stop, K)
+        m = max(stop - start, 1)
+        stage = np.empty((self.n_actions, m, self.rest.shape[3]), self.rest.dtype)
+        index = self._index(h)
+        order = self._order(index[2], start, stop, np.arange(stop - start), m)
+        return self._staged(h, start, stop, index, stage, order)
+
+    def known(self, h, start=0, stop=None):
+        return None if self.next_values is None else _as_float64(
+            self.next_values.read(h, start, stop))
+
+    def values(self, h, qmax, n, chunk):
+        index = self._index(h)
+        A, d = self.n_actions, self.rest.shape[3]
+        m = min(chunk, n)
+        stage = np.empty((A, m, d), self.rest.dtype)  # reused buffers, as StoredNext's
+        order = np.empty((m, A), dtype=np.intp)
+        rows = np.arange(m)
+        f64 = np.empty((m, A, d))
+        out = np.empty(n)
+        for s in range(0, n, chunk):
+            e = min(n, s + chunk)
+            feats = f64[: e - s]
+            o = self._order(index[2], s, e, rows[: e - s], m, order[: e - s])
+            np.copyto(feats, self._staged(h, s, e, index, stage, o))
+            nonneg = self.nonnegative
+            if nonneg is None:
+                nonneg = bool((feats >= 0).all())
+            out[s:e] = qmax(feats, self.known(h, s, e), nonneg)
+        return out
+
+    def take(self, idx):
+        idx = np.asarray(idx)
+        feats = np.stack([self.features(h)[idx] for h in range(self.rest.shape[0])])
+        nv = None if self.next_values is None else ArrayField(self.next_values.take(idx))
+        return StoredNext(ArrayField(feats), nv, self.nonnegative)
+
+
 def _prefetched(field: FileField, h, n, chunk, shape):
     """``(start, stop, rows)`` over step ``h`` with ``rows`` in float64, read (``pread``) and
     cast in the calling thread into two reused buffers; ``rows`` is valid until the next
@@ -457,6 +701,54 @@ def _dask_values(nxt: StoredNext, h, qmax):
         kv = nxt.next_values.array[h].rechunk((feats.chunks[0], -1))
         v = da.map_blocks(block, feats, kv[:, :, None], drop_axis=[1, 2], dtype=np.float64)
     return np.asarray(v.compute(), dtype=np.float64)
+
+
+def _dask_products(field: DaskField, h, cols, weights, with_gram):
+    """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` summed on the Dask workers.
+
+    One task per trajectory chunk forms that chunk's products in float64 (the columns, and
+    the weights ``W``, travel to the workers with the graph), Dask adds the partial sums up
+    in a tree, and only the ``d x (d + m)`` sums reach the client: the step's features never
+    do. Equal to the local chunked sums up to the order of the additions.
+    """
+    import dask.array as da
+
+    x = field.array[h]
+    x = x.rechunk((x.chunks[0], -1))  # chunks along trajectories only
+    K, d = x.shape
+    cols = [np.asarray(c, dtype=np.float64) for c in cols]
+    widths = [1 if c.ndim == 1 else int(np.prod(c.shape[1:])) for c in cols]
+    m = sum(widths)
+    y = np.empty((K, m + (0 if weights is None else 1)))
+    if m:
+        y[:, :m] = np.column_stack([c.reshape(K, -1) for c in cols])
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        y[:, :m] *= w[:, None]
+        y[:, m] = w
+    g = d if with_gram else 0
+    width = g + m
+
+    def block(xb, yb):
+        xb = np.asarray(xb, dtype=np.float64)
+        out = np.empty((d, width))
+        if with_gram:
+            xw = xb if weights is None else xb * yb[:, m:]
+            out[:, :d] = xw.T @ xb
+        out[:, g:] = xb.T @ yb[:, :m]
+        return out.reshape(1, d * width)
+
+    nb = len(x.chunks[0])
+    parts = da.map_blocks(block, x, da.from_array(y, chunks=(x.chunks[0], -1)),
+                          chunks=((1,) * nb, (d * width,)), dtype=np.float64)
+    total = np.asarray(parts.sum(axis=0).compute(), dtype=np.float64).reshape(d, width)
+    gram = total[:, :d].copy() if with_gram else None
+    out, at = [], g
+    for c, k in zip(cols, widths, strict=True):
+        piece = total[:, at:at + k]
+        out.append(piece[:, 0].copy() if c.ndim == 1 else piece.reshape((d,) + c.shape[1:]))
+        at += k
+    return gram, out
 
 
 def _as_float64(a):
@@ -545,6 +837,32 @@ class StepSource:
                 rows = f64[: e - s]
             yield s, e, rows
 
+    def remote_products(self, h: int, cols, weights=None, with_gram: bool = True):
+        """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` formed where the data
+        is (the Dask workers) for features held as Dask arrays; None for data the client
+        reads itself (memory, files, computed features), which the engine sums by chunk."""
+        if not isinstance(self.phi, DaskField):
+            return None
+        return _dask_products(self.phi, h, cols, weights, with_gram)
+
+    def phi_times(self, h: int, z: np.ndarray) -> np.ndarray:
+        """``Phi_h @ z`` (``(K,)`` or ``(K, m)``, float64): in memory one product, on disk by
+        chunk, for Dask arrays on the workers (one task per trajectory chunk)."""
+        field = self.phi
+        if isinstance(field, DaskField):
+            x = field.array[h]
+            x = x.rechunk((x.chunks[0], -1))
+            out = x.map_blocks(lambda b: np.asarray(b, dtype=np.float64) @ z,
+                               chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
+                               drop_axis=None if z.ndim == 2 else 1)
+            return np.asarray(out.compute(), dtype=np.float64)
+        if isinstance(field, ArrayField) and field.dtype == np.float64:
+            return field.read(h) @ z
+        out = np.empty((self.n_trajectories,) + z.shape[1:])
+        for s, e, rows in self.phi_chunks(h):
+            out[s:e] = rows @ z
+        return out
+
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
 
@@ -620,11 +938,14 @@ def layout_step_major(x: np.ndarray) -> np.ndarray:
     return sm if sm.flags.c_contiguous else np.ascontiguousarray(sm)
 
 
-def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
+def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
+                         simplex: bool = True):
     """Validate one chunk of step-major rows; returns ``(phi, next_phi)`` simplex flags
     and non-negativity: ``(neg_phi, off_phi, neg_next, off_next, nonneg_phi, nonneg_next)``.
 
-    ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used.
+    ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used. With
+    ``simplex=False`` the simplex flags (row sums: most of the work) are not computed and
+    returned False; everything else is checked the same.
     """
     for name, x in (("phi", phi), ("rewards", rewards)):
         if not np.isfinite(x).all():
@@ -633,7 +954,7 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
     if next_values is not None and not last_step and np.isinf(next_values).any():
         raise ValueError(f"next_values contains {int(np.count_nonzero(np.isinf(next_values)))} "
                          "infinite entries; use NaN where the value must be learned")
-    flags = simplex_flags(phi)
+    flags = simplex_flags(phi) if simplex else (False, False)
     nonneg_phi = bool((phi >= 0).all())
     if last_step or next_phi is None:
         return flags + (False, False, nonneg_phi, True)
@@ -648,7 +969,8 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool):
                 "may be left undefined)"
             )
     # NaN rows (known values) count as neither negative nor off the simplex.
-    return flags + simplex_flags(next_phi) + (nonneg_phi, not bool((next_phi < 0).any()))
+    next_flags = simplex_flags(next_phi) if simplex else (False, False)
+    return flags + next_flags + (nonneg_phi, not bool((next_phi < 0).any()))
 
 
 def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chunk=CHUNK,
@@ -668,7 +990,7 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
             try:
                 flags = check_features_chunk(
                     phi[h, s:e], rewards[h, s:e],
-                    None if next_phi is None else next_phi[h, s:e], nv, last)
+                    None if next_phi is None else next_phi[h, s:e], nv, last, check_simplex)
             except ValueError as exc:
                 raise _counted(exc, phi, rewards, next_values, chunk) from None
             for i in range(4):
@@ -756,6 +1078,8 @@ def open_directory(path, feature_map=None) -> StepSource:
         nxt = StoredNext(field("next_phi"),
                                      field("next_values") if "next_values" in files else None,
                                      mf.get("nonnegative_next_phi"))
+    elif mf["next"] == "behaviour":
+        nxt = _open_behaviour(path, mf, field, phi)
     elif mf["next"] == "table":
         table = np.load(path / files["next_table"], allow_pickle=False)
         kt = (np.load(path / files["next_table_values"], allow_pickle=False)
@@ -774,6 +1098,55 @@ def open_directory(path, feature_map=None) -> StepSource:
             raise ValueError(f"{path / files['gram']} must hold (H, d, d) = {(H, d_, d_)} "
                              f"float64 Gram matrices, got {grams.shape} {grams.dtype}")
     return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams)
+
+
+def _open_behaviour(path: Path, mf: dict, field, phi: Field) -> BehaviourNext:
+    """The behaviour form's fields, checked against the manifest (each error names the
+    field)."""
+    files = mf["files"]
+    spec = mf.get("next_behaviour")
+    if not isinstance(spec, dict) or not isinstance(spec.get("version"), int):
+        raise ValueError(f"{path}: the manifest's 'next_behaviour' entry (a dict with a "
+                         "'version') is missing or malformed")
+    if spec["version"] > BEHAVIOUR_VERSION:
+        raise ValueError(f"{path}: next_behaviour version {spec['version']}; this r2pvi reads "
+                         f"versions <= {BEHAVIOUR_VERSION}: upgrade r2pvi")
+    for name in ("next_action", "next_rest", "next_side", "next_side_offsets"):
+        if name not in files or name not in mf.get("shapes", {}):
+            raise ValueError(f"{path}: the manifest lists no {name!r} field, which the "
+                             "behaviour next-state form needs")
+        if not (path / files[name]).is_file():
+            raise ValueError(f"{path}: the {name!r} field's file {files[name]} is missing")
+    if not isinstance(phi, FileField):
+        raise ValueError(f"{path}: the behaviour next-state form needs stored features "
+                         "('phi': 'stored')")
+    H, K, d = phi.shape
+    A = int(mf["n_actions"])
+    store = phi.dtype
+    action, rest = field("next_action"), field("next_rest")
+    if action.dtype.kind != "i":
+        raise ValueError(f"{path}: next_action must hold signed integers, got {action.dtype}")
+    if action.shape != (H, K):
+        raise ValueError(f"{path}: next_action has shape {action.shape}, expected {(H, K)}")
+    if rest.shape != (H, K, A - 1, d) or rest.dtype != store:
+        raise ValueError(f"{path}: next_rest must be {(H, K, A - 1, d)} {store}, got "
+                         f"{rest.shape} {rest.dtype}")
+    side = RowFile(path / files["next_side"])
+    if list(side.shape) != list(mf["shapes"]["next_side"]) or side.shape[1:] != (d,) or \
+            side.dtype != store:
+        raise ValueError(f"{path}: next_side must be (n_side, d) {store} as the manifest says "
+                         f"{mf['shapes']['next_side']}, got {side.shape} {side.dtype}")
+    offsets = np.load(path / files["next_side_offsets"], allow_pickle=False)
+    if (offsets.shape != (H + 1,) or offsets.dtype.kind not in "iu" or offsets[0] != 0
+            or (np.diff(offsets) < 0).any() or (np.diff(offsets) > K).any()
+            or offsets[-1] != side.shape[0] or offsets[-1] - offsets[-2] != K
+            or spec.get("n_side") != side.shape[0]):
+        raise ValueError(
+            f"{path}: next_side_offsets must be (H+1,) = ({H + 1},) non-decreasing integers "
+            f"from 0 to the side table's {side.shape[0]} rows (at most K per step, K at the "
+            "last step, n_side in the manifest): the dataset is corrupt")
+    kv = field("next_values") if "next_values" in files else None
+    return BehaviourNext(action, rest, phi, side, offsets, kv, mf.get("nonnegative_next_phi"))
 
 
 def _temp_dir(path: Path) -> Path:
@@ -832,9 +1205,14 @@ class _Computed(Field):
         return self.fn(h, start, self.shape[1] if stop is None else stop)
 
 
-def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) -> Path:
-    """Write ``source`` in the on-disk format (streamed step by step; atomic rename)."""
+def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
+                    next_form="full") -> Path:
+    """Write ``source`` in the on-disk format (streamed step by step; atomic rename).
+
+    ``next_form="behaviour"`` stores stored next-state features without the rows that equal
+    the next step's taken-action features (:class:`BehaviourNext`)."""
     path = Path(os.fspath(path))
+    next_form = _next_form(next_form)
     store = np.dtype(dtype) if dtype is not None else np.dtype(
         np.float32 if source.phi.dtype == np.float32 else np.float64)
     if store not in (np.float32, np.float64):
@@ -849,6 +1227,12 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
             _stream_field(tmp / files[name], field, dt, source.chunk, transform)
 
         phi_kind = "stored"
+        if next_form == "behaviour" and (isinstance(source.phi, MappedField) or isinstance(
+                source.next, MapNext | TableNext)):
+            raise ValueError(
+                "next_form='behaviour' applies to stored next-state features; this dataset "
+                "stores observations or next-state indices, which hold no next-state features "
+                "to spare: save it with next_form='full'")
         if isinstance(source.phi, MappedField):  # store what it is computed from
             phi_kind = "map"
             put("observations", source.phi.observations, source.phi.observations.dtype)
@@ -887,8 +1271,13 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
             kind = "stored"
             feats = nxt.next_phi if isinstance(nxt, StoredNext) else _Computed(
                 (H, K, A, d), store, nxt.features)
-            put("next_phi", feats, store,
-                lambda h, s, e, rows: np.nan_to_num(rows, nan=0.0) if h == H - 1 else rows)
+            if next_form == "behaviour":
+                kind = "behaviour"
+                meta["next_behaviour"] = _write_behaviour(tmp, files, shapes, source.phi,
+                                                          feats, store, source.chunk)
+            else:
+                put("next_phi", feats, store,
+                    lambda h, s, e, rows: np.nan_to_num(rows, nan=0.0) if h == H - 1 else rows)
             if nxt.has_known_values:
                 kv = nxt.next_values if isinstance(nxt, StoredNext) else _Computed(
                     (H, K, A), np.float64,
@@ -914,6 +1303,47 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False) ->
         raise
 
 
+def _behaviour_files(files, shapes, H, K, A, d, n_side):
+    names = {"next_action": (H, K), "next_rest": (H, K, A - 1, d), "next_side": (n_side, d),
+             "next_side_offsets": (H + 1,)}
+    for name, shape in names.items():
+        files[name] = name + ".npy"
+        shapes[name] = list(shape)
+    return {"version": BEHAVIOUR_VERSION, "n_side": int(n_side)}
+
+
+def _write_behaviour(tmp: Path, files, shapes, phi: Field, next_phi: Field, store, chunk):
+    """Stream ``next_phi`` into the behaviour form's files (see :class:`BehaviourNext`)."""
+    H, K, A, d = next_phi.shape
+    offsets = np.zeros(H + 1, dtype=np.int64)
+    raw = tmp / "next_side.raw"
+    with open(tmp / "next_action.npy", "wb") as fa, open(tmp / "next_rest.npy", "wb") as fr, \
+            open(raw, "wb") as fs:
+        _write_npy_header(fa, (H, K), _action_dtype(A))
+        _write_npy_header(fr, (H, K, A - 1, d), store)
+        for h in range(H):
+            for s, e, rows in next_phi.chunks(h, chunk):
+                rows = np.ascontiguousarray(rows, dtype=store)
+                if h == H - 1:
+                    rows = np.nan_to_num(rows, nan=0.0)
+                    following = None
+                else:
+                    following = np.ascontiguousarray(phi.read(h + 1, s, e), dtype=store)
+                action, rest, side = behaviour_split(following, rows)
+                fa.write(action.tobytes())
+                fr.write(np.ascontiguousarray(rest).tobytes())
+                fs.write(np.ascontiguousarray(side).tobytes())
+                offsets[h + 1] += side.shape[0]
+    offsets = np.cumsum(offsets)
+    n_side = int(offsets[-1])
+    with open(tmp / "next_side.npy", "wb") as fh, open(raw, "rb") as fs:
+        _write_npy_header(fh, (n_side, d), store)
+        shutil.copyfileobj(fs, fh, 1 << 22)
+    raw.unlink()
+    np.save(tmp / "next_side_offsets.npy", offsets, allow_pickle=False)
+    return _behaviour_files(files, shapes, H, K, A, d, n_side)
+
+
 class DatasetWriter:
     """Write a dataset bigger than memory, a chunk of trajectories at a time.
 
@@ -936,6 +1366,15 @@ class DatasetWriter:
         Warn once (at :meth:`close`) when features leave the simplex.
     overwrite : bool, default False
         Replace an existing dataset at ``path``.
+    next_form : {"full", "behaviour"}, default "full"
+        How the next-state features are stored. ``"full"``: every action's row,
+        ``next_phi (H, K, A, d)``. ``"behaviour"``: each sample's row that is bitwise equal to
+        the trajectory's next taken-action features ``phi[k, h+1]`` (the behaviour action's;
+        the chunk holds all H steps, so step h+1 is at hand) is not stored, only the other
+        ``A - 1`` rows and the action's index; samples where no row matches (episode ends,
+        padded steps, independent transitions, rows of known values, the last step) keep
+        their missing row in a side table. Fits are bitwise equal to the full form's; at
+        A = 2 on trajectories it stores about a third fewer bytes (docs/storage.md).
 
     Examples
     --------
@@ -951,10 +1390,30 @@ class DatasetWriter:
     ...     ds = OfflineDataset.open(os.path.join(tmp, "ds"))
     ...     ds.n_trajectories, ds.phi.dtype
     (30, dtype('float32'))
+
+    Trajectories, stored without the behaviour action's next-state row:
+
+    >>> K, H, A, d = 40, 5, 2, 3
+    >>> nxt = rng.dirichlet(np.ones(d), (K, H, A)).astype(np.float32)
+    >>> taken = rng.integers(A, size=(K, H))                # a_{h+1} of each trajectory
+    >>> phi = np.empty((K, H, d), np.float32)
+    >>> phi[:, 0] = rng.dirichlet(np.ones(d), K)
+    >>> phi[:, 1:] = nxt[np.arange(K)[:, None], np.arange(H - 1), taken[:, 1:]]
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     for form in ("full", "behaviour"):
+    ...         with DatasetWriter(os.path.join(tmp, form), horizon=H, n_features=d,
+    ...                            n_actions=A, next_form=form) as w:
+    ...             w.append(phi, rng.random((K, H)), nxt)
+    ...     full = OfflineDataset.open(os.path.join(tmp, "full"))
+    ...     beh = OfflineDataset.open(os.path.join(tmp, "behaviour"))
+    ...     same = np.array_equal(full.next_phi, beh.next_phi)
+    ...     n_side = len(np.load(os.path.join(tmp, "behaviour", "next_side.npy")))
+    >>> same, n_side                                    # only the last step's K rows
+    (True, 40)
     """
 
     def __init__(self, path, *, horizon, n_features, n_actions, dtype="float32",
-                 check_simplex=True, overwrite=False):
+                 check_simplex=True, overwrite=False, next_form="full"):
         from ._validation import check_scalar
 
         self.path = Path(os.fspath(path))
@@ -964,6 +1423,7 @@ class DatasetWriter:
         self.dtype = _float_dtype(dtype)
         self.check_simplex = check_simplex
         self.overwrite = overwrite
+        self.next_form = _next_form(next_form)
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists; pass overwrite=True or choose a new path")
         self._tmp: Path | None = _temp_dir(self.path)
@@ -999,7 +1459,7 @@ class DatasetWriter:
                                  f"{np.shape(next_values)}; use NaN where the value is learned")
         for h in range(H):
             f = check_features_chunk(p[h], r[h], n[h], None if nv is None else nv[h],
-                                     h == H - 1)
+                                     h == H - 1, self.check_simplex)
             for i in range(4):
                 self._flags[i] = self._flags[i] or f[i]
             self._flags[4] &= f[4]
@@ -1013,7 +1473,18 @@ class DatasetWriter:
         if not np.array_equal(last, n[H - 1], equal_nan=False):
             n = n.copy()
             n[H - 1] = last
-        np.save(shard / "next_phi.npy", n, allow_pickle=False)
+        if self.next_form == "behaviour":  # step h+1 of the same trajectories is in p
+            parts = [behaviour_split(p[h + 1] if h < H - 1 else None, n[h]) for h in range(H)]
+            np.save(shard / "next_action.npy", np.stack([q[0] for q in parts]),
+                    allow_pickle=False)
+            np.save(shard / "next_rest.npy", np.stack([q[1] for q in parts]),
+                    allow_pickle=False)
+            np.save(shard / "next_side.npy", np.concatenate([q[2] for q in parts]),
+                    allow_pickle=False)
+            np.save(shard / "next_side_counts.npy", np.array([len(q[2]) for q in parts]),
+                    allow_pickle=False)
+        else:
+            np.save(shard / "next_phi.npy", n, allow_pickle=False)
         if nv is not None:
             np.save(shard / "next_values.npy", nv, allow_pickle=False)
         self._shards.append((k, nv is not None))
@@ -1029,8 +1500,13 @@ class DatasetWriter:
         try:
             H, K, d, A = self.horizon, self.n_trajectories, self.n_features, self.n_actions
             any_nv = any(has for _, has in self._shards)
-            fields = {"phi": ((H, K, d), self.dtype), "rewards": ((H, K), np.float64),
-                      "next_phi": ((H, K, A, d), self.dtype)}
+            fields = {"phi": ((H, K, d), self.dtype), "rewards": ((H, K), np.float64)}
+            behaviour = self.next_form == "behaviour"
+            if behaviour:
+                fields["next_action"] = ((H, K), _action_dtype(A))
+                fields["next_rest"] = ((H, K, A - 1, d), self.dtype)
+            else:
+                fields["next_phi"] = ((H, K, A, d), self.dtype)
             if any_nv:
                 fields["next_values"] = ((H, K, A), np.float64)
             grams = np.zeros((H, d, d))
@@ -1049,6 +1525,11 @@ class DatasetWriter:
                 for f in shards:
                     if f is not None:
                         f.close()
+            files = {name: f"{name}.npy" for name in fields}
+            shapes = {name: list(shape) for name, (shape, _) in fields.items()}
+            extra = {}
+            if behaviour:
+                extra["next_behaviour"] = self._assemble_side(tmp, files, shapes)
             for i in range(len(self._shards)):
                 shutil.rmtree(tmp / f"shard{i:06d}")
             np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
@@ -1059,15 +1540,38 @@ class DatasetWriter:
             manifest = {
                 "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
                 "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
-                "dtype": self.dtype.name, "next": "stored",
-                "files": {**{name: f"{name}.npy" for name in fields}, "gram": GRAM_FILE},
-                "shapes": {name: list(shape) for name, (shape, _) in fields.items()},
+                "dtype": self.dtype.name, "next": "behaviour" if behaviour else "stored",
+                "files": {**files, "gram": GRAM_FILE}, "shapes": shapes,
                 "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
+                **extra,
             }
             return _finish(tmp, self.path, manifest, self.overwrite)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
+
+    def _assemble_side(self, tmp: Path, files, shapes) -> dict:
+        """The behaviour form's side table from the shards': step by step, then in
+        trajectory order (the shards are consecutive trajectories)."""
+        H, d, A = self.horizon, self.n_features, self.n_actions
+        shards = [tmp / f"shard{i:06d}" for i in range(len(self._shards))]
+        counts = np.stack([np.load(s / "next_side_counts.npy", allow_pickle=False)
+                           for s in shards])  # (shards, H)
+        starts = np.concatenate([np.zeros((len(shards), 1), np.int64),
+                                 np.cumsum(counts, axis=1)], axis=1)
+        offsets = np.concatenate([[0], np.cumsum(counts.sum(axis=0))]).astype(np.int64)
+        n_side = int(offsets[-1])
+        with open(tmp / "next_side.npy", "wb") as fh:
+            _write_npy_header(fh, (n_side, d), self.dtype)
+            sides = [np.load(s / "next_side.npy", mmap_mode="r", allow_pickle=False)
+                     for s in shards]
+            for h in range(H):
+                for i, side in enumerate(sides):
+                    rows = side[starts[i, h]:starts[i, h + 1]]
+                    fh.write(np.ascontiguousarray(rows, dtype=self.dtype).tobytes())
+            del sides
+        np.save(tmp / "next_side_offsets.npy", offsets, allow_pickle=False)
+        return _behaviour_files(files, shapes, H, self.n_trajectories, A, d, n_side)
 
     def abort(self):
         """Discard everything written so far."""

@@ -50,9 +50,8 @@ def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float
     weights = np.ones((H, n))
     pooled = stack_rows([dataset.step(h)[0] for h in range(H)]) if n != K else None
     for h in range(H - 1):  # V_H = 0: sigma_{H-1}^2 = max(1, 0) = 1
-        phi = dataset.step(h)[0] if pooled is None else pooled
         z = first.value_moments[h]  # (d, 2): ridge estimates of V_{h+1} and V_{h+1}^2
-        pred = np.asarray(phi @ z)
+        pred = np.asarray(dataset.step_times(h, z) if pooled is None else pooled @ z)
         mean = np.clip(pred[:, 0], 0.0, v_upper)
         second = np.clip(pred[:, 1], 0.0, v_upper * v_upper)
         weights[h] = 1.0 / np.maximum(1.0, second - mean * mean)
