@@ -15,7 +15,9 @@ from r2pvi.duals.operators import BLOCK, ExpectationOperator, sort_breakpoints
 from r2pvi.duals.piecewise import (
     BlockScan,
     _chi2_block_bounds,
+    blockwise_max,
     chi2_objective,
+    dense_max,
     segments_max,
     tv_ball_max,
 )
@@ -66,11 +68,12 @@ def _block_segments(E, v, extra):
 
 @settings(max_examples=60, deadline=None)
 @given(cases, st.sampled_from([1e-3, 0.3, 10.0]),
-       st.sampled_from(["none", "mean", "both", "negative_mean"]))
-def test_chi2_block_bound_is_at_least_the_exact_maximum_of_every_block(case, lam, clips):
+       st.sampled_from(["none", "mean", "both", "negative_mean"]), st.sampled_from([1, 3, 4]))
+def test_chi2_block_bound_is_at_least_the_exact_maximum_of_every_block(case, lam, clips, group):
     """``_chi2_block_bounds`` (its monotone shortcut, the convex case without a mean clip, the
     negative-alpha and straddle corrections) bounds the exact maximum of the objective over
-    every block's segments."""
+    every block's segments, on both levels of the scan: blocks of ``16 group`` breakpoints and
+    (:meth:`BlockScan.sub_blocks`) their blocks of 16, whose start values are exact."""
     E, v = ridge_case(**case)
     top = float(np.abs(v).max()) or 1.0
     mean_clip, second_clip = {
@@ -78,24 +81,37 @@ def test_chi2_block_bound_is_at_least_the_exact_maximum_of_every_block(case, lam
         "negative_mean": ((-10.0 * lam - top, top), (0.0, top**2)),
     }[clips]
     extra = _extra(v)
-    scan = BlockScan(E, v, extra)
+    scan = BlockScan(E, v, extra, group=group)
     upper = _chi2_block_bounds(scan, lam, mean_clip, second_clip).copy()
-    # the same block starts as the scan (its first breakpoint of every block)
+    d, n_coarse = upper.shape
+    rows = np.repeat(np.arange(d), n_coarse)
+    sub = scan.sub_blocks(rows, np.tile(np.arange(n_coarse), d))
+    sub_upper = _chi2_block_bounds(sub, lam, mean_clip, second_clip).copy()
+    cum = E.truncation_cumulants(v, extra)
+    first = np.arange(0, cum.alphas.size, BLOCK)
+    e1 = cum.a[:, first] + cum.b[:, first] * cum.alphas[first]  # at every fine block start
+    e2 = cum.c[:, first] + cum.b[:, first] * cum.alphas[first] ** 2
+    valid = sub.valid
+    scale = 1e-10 * (1.0 + top) ** 2 * (1.0 + np.abs(E.matrix).sum(axis=1).max())
+    assert np.all(np.abs(sub.e1_start - e1[rows[:, None], sub.blocks])[valid] <= scale)
+    assert np.all(np.abs(sub.e2_start - e2[rows[:, None], sub.blocks])[valid] <= scale)
     for k, a, b, c, al in _block_segments(E, v, extra):
         exact = segments_max(a, b, c, al, lam, mean_clip, second_clip)
         tol = 1e-9 * (1.0 + np.abs(exact)) + 1e-12 * (1.0 + top + 0.25 / lam * top**2)
-        assert np.all(upper[:, k] >= exact - tol), (k, upper[:, k] - exact)
+        assert np.all(upper[:, k // group] >= exact - tol), (k, upper[:, k // group] - exact)
+        fine = sub_upper.reshape(d, n_coarse * group)[:, k]
+        assert np.all(fine >= exact - tol), (k, fine - exact)
 
 
 @settings(max_examples=60, deadline=None)
-@given(cases, st.floats(0.0, 2.0))
-def test_tv_ball_blockwise_equals_every_breakpoint(case, rho):
-    """``tv_ball_max`` (the same scan, its TV bound) equals the maximum over every breakpoint
-    of the dense cumulants."""
+@given(cases, st.floats(0.0, 2.0), st.sampled_from([None, 1, 2, 3, 8]))
+def test_tv_ball_blockwise_equals_every_breakpoint(case, rho, group):
+    """``tv_ball_max`` (the same two-level scan, its TV bound) equals the maximum over every
+    breakpoint of the dense cumulants."""
     E, v = ridge_case(**case)
     y = v - v.min()
     rho_d = np.full(E.n_dims, rho)
-    got = tv_ball_max(E, y, rho_d)
+    got = tv_ball_max(E, y, rho_d, group=group)
     cum = E.truncation_cumulants(y)
     ref = (cum.a + (cum.b - rho_d[:, None]) * cum.alphas).max(axis=1)
     scale = 1.0 + np.abs(ref).max()
@@ -103,18 +119,19 @@ def test_tv_ball_blockwise_equals_every_breakpoint(case, rho):
 
 
 @settings(max_examples=60, deadline=None)
-@given(cases, st.sampled_from([1e-3, 0.3, 10.0]), st.booleans())
-def test_chi2_blockwise_equals_dense_without_centering(case, lam, clipped):
-    """The branch and bound on uncentered values (negative alphas, a block straddling 0)
-    equals the dense reference."""
-    from r2pvi.duals import chi2_regularized
-
+@given(cases, st.sampled_from([1e-3, 0.3, 10.0]), st.booleans(),
+       st.sampled_from([None, 1, 2, 3, 8]))
+def test_chi2_blockwise_equals_dense_without_centering(case, lam, clipped, group):
+    """The two-level branch and bound on uncentered values (negative alphas, a block
+    straddling 0; any number of fine blocks per block, the last one short) equals the dense
+    reference."""
     E, v = ridge_case(**case)
     top = float(np.abs(v).max()) or 1.0
     clips = ((0.0, top), (0.0, top**2)) if clipped else (None, None)
+    extra = _extra(v)
     with np.errstate(over="ignore", invalid="ignore"):
-        dense = chi2_regularized(E, v, lam, *clips, method="dense", center=False)
-        block = chi2_regularized(E, v, lam, *clips, method="blockwise", center=False)
+        dense = dense_max(E, v, lam, *clips, extra).copy()
+        block = blockwise_max(E, v, lam, *clips, extra, group=group)
     tol = 1e-9 * (1.0 + np.abs(dense).max()) + 1e-12 * 0.25 / lam * top**2
     np.testing.assert_allclose(block, dense, rtol=0, atol=tol)
 
