@@ -102,7 +102,8 @@ class ExpectationOperator:
         Returns :class:`SortedBlocks` with ``alphas (p,)`` as in :meth:`sorted_weights` and,
         for every block of 16 consecutive sorted points, the sums of ``M``, ``M v`` and (with
         ``moments=3``) ``M v^2``, and an upper bound on the sum of ``|M|`` (each ``(d, p/16)``),
-        plus a function giving the exact weights of chosen (factor, block) pairs.
+        plus a function giving the exact weights of chosen (factor, block) pairs. The arrays
+        may live in reused work buffers: valid until the next call in the same thread.
         """
         alphas, weights, m = self.sorted_weights(v, breakpoints_extra)
         d, p = weights.shape
