@@ -63,9 +63,11 @@ def forget_grams(ds):
     """The dataset without the Gram matrices an earlier fit left in its cache (r2pvi keeps
     them for repeated fits on the same data): every timed fit forms its own, as a single fit
     does, so that it is compared with a floor that forms them too."""
-    grams = getattr(getattr(ds, "_source", None), "_grams", None)
-    if grams is not None:
-        grams[:] = [None] * len(grams)
+    src = getattr(ds, "_source", None)
+    for name in ("_grams", "_sums"):  # the Gram matrices and the column sums Phi^T 1
+        cache = getattr(src, name, None)
+        if cache is not None:
+            cache[:] = [None] * len(cache)
     return ds
 
 

@@ -4,6 +4,7 @@ Writes its data first (nothing is committed), then times each fit in a fresh pro
 reports the process's peak resident memory (``VmHWM``; see :func:`peak_rss_mib`):
 
     python benchmarks/bench_storage.py disk --K 1000000          # features stored, float32
+    python benchmarks/bench_storage.py disk --keep --repeats 3   # again, best of 3 each
     python benchmarks/bench_storage.py scaling --Ks 1e5 1e6 1e7  # observations + feature map
     python benchmarks/bench_storage.py float32                   # float32 vs float64 storage
     python benchmarks/bench_storage.py behaviour --Ks 1e5 1e6    # next_form full vs behaviour
@@ -243,9 +244,10 @@ def disk(args):
     size = dir_size(path)
     print(f"K = {args.K}, d = {D}, H = {H}, A = {A}, float32 on disk: {size / 2**30:.2f} GiB")
     run_child(what="read", path=str(path))  # warm the page cache
-    read = run_child(what="read", path=str(path))
+    read = best_of(args.repeats, what="read", path=str(path))
     print(f"{'task':<12} {'seconds':>8} {'x read':>7} {'CPU s':>7} {'x read':>7} "
-          f"{'peak RSS MiB':>13} {'load':>5}")
+          f"{'peak RSS MiB':>13} {'load':>5}"
+          + (f"   (best of {args.repeats} fresh processes each)" if args.repeats > 1 else ""))
 
     def row(name, r):
         print(f"{name:<12} {r['seconds']:8.2f} {r['seconds'] / read['seconds']:7.2f} "
@@ -254,7 +256,17 @@ def disk(args):
 
     row("read once", read)
     for name in args.estimators:
-        row(name, run_child(what=name, path=str(path)))
+        row(name, best_of(args.repeats, what=name, path=str(path)))
+
+
+def best_of(repeats: int, **task) -> dict:
+    """The run with the least CPU time among ``repeats`` fresh processes (each field from that
+    run; the peak memory is the largest seen): on a shared machine the least disturbed run."""
+    runs = [run_child(**task) for _ in range(max(1, repeats))]
+    best = dict(min(runs, key=lambda r: r["cpu_seconds"]))
+    best["seconds"] = min(r["seconds"] for r in runs)
+    best["peak_rss_mib"] = max(r["peak_rss_mib"] for r in runs)
+    return best
 
 
 def scaling(args):
@@ -331,6 +343,9 @@ def main(argv=None):
     d.add_argument("--K", type=int, default=1_000_000)
     d.add_argument("--estimators", nargs="*",
                    default=["R2PVI-TV", "R2PVI-KL", "R2PVI-chi2", "DRPVI"])
+    d.add_argument("--repeats", type=int, default=1,
+                   help="fresh processes per task; the least CPU time is reported (and the "
+                   "least wall time)")
     s = sub.add_parser("scaling")
     s.add_argument("--Ks", nargs="*", default=["1e5", "1e6", "1e7"])
     b = sub.add_parser("behaviour")

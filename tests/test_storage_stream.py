@@ -105,8 +105,8 @@ class Reads:
 def test_each_step_reads_its_features_as_few_times_as_the_rule_needs(
         saved, name, gram_known, passes, monkeypatch):
     """TV, PEVI and KL: one read per step for Lambda, theta (rewards) and the rule's
-    regressions (KL's two: ``E.apply_pair``); none holds the whole step. chi^2 and DRPVI
-    read the step whole, once."""
+    regression (KL's one, with E(1) from the column sums); none holds the whole step. chi^2
+    and DRPVI read the step whole, once."""
     _, path = saved
     ds = OfflineDataset.open(path)
     if not gram_known:

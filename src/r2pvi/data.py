@@ -704,7 +704,7 @@ class OfflineDataset:
         >>> with tempfile.TemporaryDirectory() as tmp:
         ...     p = ds.save(os.path.join(tmp, "data"))
         ...     sorted(os.listdir(p)), OfflineDataset.open(p).n_trajectories
-        (['gram.npy', 'manifest.json', 'next_phi.npy', 'phi.npy', 'rewards.npy'], 2)
+        (['gram.npy', 'manifest.json', 'next_phi.npy', 'phi.npy', 'phi_sums.npy', 'rewards.npy'], 2)
         """
         p = Path(os.fspath(path))
         next_form = _st._next_form(next_form)

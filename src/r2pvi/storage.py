@@ -5,9 +5,11 @@ Every step of the backward induction reads only that step's data. A dataset is t
 one range of trajectories at a time, wherever they are:
 
 - :class:`ArrayField` — a NumPy array (or a read-only view of the caller's array, no copy);
-- :class:`FileField` — a ``.npy`` file of the on-disk format, read chunk by chunk with
-  ``pread`` (nothing is memory-mapped while fitting, so the resident memory stays at one
-  step's worth; :meth:`FileField.lazy` gives a memory map for browsing);
+- :class:`FileField` — a ``.npy`` file of the on-disk format, read chunk by chunk: while
+  fitting, a step is memory-mapped a window of 32 MiB at a time and cast chunk by chunk into a
+  reused float64 buffer (the resident memory stays bounded; ``pread`` where a file cannot be
+  mapped); :meth:`FileField.read` reads a range with ``pread``, :meth:`FileField.lazy` gives a
+  memory map of the whole file for browsing;
 - :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
 
 Next-state features are computed where they need not be stored (:class:`StoredNext`,
@@ -31,6 +33,8 @@ The on-disk format (format version 2) is a directory::
     next_side_offsets.npy (H+1,)       into next_side); see BehaviourNext
     next_values.npy      (H, K, A)     known next-state action values (NaN: learn); optional
     next_table_values.npy (S, A)       known values by next state (table form); optional
+    gram.npy             (H, d, d)     float64 Phi_h^T Phi_h of the stored features; optional
+    phi_sums.npy         (H, d)        float64 Phi_h^T 1 (column sums); optional
     extra_<name>.npy     (K, H, ...)   observed states, actions, next states; optional
 
 Plain ``.npy`` files (no pickle, ``allow_pickle=False`` on every read), described by a JSON
@@ -74,10 +78,13 @@ FORMAT_VERSION = 2
 KIND = "r2pvi.OfflineDataset"
 MANIFEST = "manifest.json"
 GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)
-# Trajectories per chunk when streaming a step. Small enough that a chunk's float64 buffer
-# stays in a core's cache between the cast and the products (about 1 MB for d = 30, A = 2):
-# at K = 1e6 the next-state pass took 30-40% less CPU than with 8192 rows.
-CHUNK = 1 << 11
+SUMS_FILE = "phi_sums.npy"  # (H, d) float64 Phi_h^T 1, the column sums (optional)
+# Trajectories per chunk when streaming a step: about 1 MB (taken actions) and 2 MB (next
+# states, A = 2) of float64 per chunk for d = 30, about one core's L2. Measured at K = 1e6
+# from the page cache (TV and KL fits from disk, min of 3-4 interleaved rounds, shared
+# machine): 4096 rows 8-12% less CPU than 2048 (per-chunk Python and call overhead), 8192
+# no better than 4096.
+CHUNK = 1 << 12
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
 
 
@@ -143,7 +150,8 @@ class ArrayField(Field):
 
 
 class FileField(Field):
-    """A field in a ``.npy`` file, read with ``pread`` into fresh arrays (no memory map)."""
+    """A field in a ``.npy`` file: :meth:`read` reads a range with ``pread`` (into ``out`` or a
+    fresh array); fits stream a step through windows of a memory map (``_prefetched``)."""
 
     def __init__(self, path):
         self.path = Path(path)
@@ -305,13 +313,17 @@ class StoredNext(NextStates):
         return None if self.next_values is None else _as_float64(
             self.next_values.read(h, start, stop))
 
-    def values(self, h, qmax, n, chunk):
+    def values(self, h, qmax, n, chunk, out=None):
         field = self.next_phi
         if isinstance(field, DaskField):
-            return _dask_values(self, h, qmax)
+            v = _dask_values(self, h, qmax)
+            if out is None:
+                return v
+            out[...] = v
+            return out
         # Two reused buffers (a chunk read in the storage type, then cast to float64): no
         # fresh allocation, so no page faults, per chunk.
-        out = np.empty(n)
+        out = np.empty(n) if out is None else out
         shape = (min(chunk, n),) + field.shape[2:]
         if isinstance(field, FileField):
             reads = _prefetched(field, h, n, chunk, shape)
@@ -319,12 +331,35 @@ class StoredNext(NextStates):
             reads = ((s, min(n, s + chunk), field.read(h, s, min(n, s + chunk)))
                      for s in range(0, n, chunk))
         f64 = np.empty(shape)
-        for s, e, rows in reads:
-            if rows.dtype == np.float64 and rows.flags.c_contiguous:
-                feats = rows
-            else:
-                feats = f64[: e - s]
-                np.copyto(feats, rows)
+
+        def float64_rows():
+            for s, e, rows in reads:
+                if not (rows.dtype == np.float64 and rows.flags.c_contiguous):
+                    np.copyto(f64[: e - s], rows)
+                    rows = f64[: e - s]
+                yield s, e, rows
+
+        linear = getattr(qmax, "linear", None)
+        lin = None
+        if linear is not None and self.next_values is None and self.nonnegative is not None:
+            lin = linear(self.nonnegative)
+        if lin is not None:
+            # V = clip(max_a phi_a^T u, 0, upper): one matrix-vector product per chunk into a
+            # reused buffer, the max over actions into the output, one clip at the end.
+            u, upper = lin
+            A, d = field.shape[2], field.shape[3]
+            q = np.empty(shape[0] * A)
+            for s, e, rows in float64_rows():
+                qa = np.matmul(rows.reshape(-1, d), u, out=q[: (e - s) * A]).reshape(e - s, A)
+                if A == 1:
+                    out[s:e] = qa[:, 0]
+                elif A == 2:
+                    np.maximum(qa[:, 0], qa[:, 1], out=out[s:e])
+                else:
+                    np.max(qa, axis=1, out=out[s:e])
+            np.clip(out, 0.0, upper, out=out)
+            return out
+        for s, e, feats in float64_rows():
             nonneg = self.nonnegative
             if nonneg is None:
                 nonneg = bool((feats >= 0).all())
@@ -660,27 +695,74 @@ class BehaviourNext(NextStates):
 
 
 def _prefetched(field: FileField, h, n, chunk, shape):
-    """``(start, stop, rows)`` over step ``h`` with ``rows`` in float64, read (``pread``) and
-    cast in the calling thread into two reused buffers; ``rows`` is valid until the next
-    iteration. The reads are sequential, so the kernel's own read-ahead fetches data that is
-    not yet in the page cache while a chunk is computed.
+    """``(start, stop, rows)`` over step ``h`` with ``rows`` in float64 (a reused buffer, valid
+    until the next iteration), read in the calling thread in file order.
 
-    Measured at K = 1e6, d = 30, A = 2 from the page cache on the shared 2-core machine: a
-    reader thread that read and cast the next chunk while this one was computed cost about
-    twice the CPU time per pass (next-state pass 1.2-1.4 s against 0.65-0.76 s for 5 steps,
-    wall time no better), and asking the kernel to read ahead (``posix_fadvise(WILLNEED)``)
-    took 10% of a TV fit's samples for pages already cached.
+    The step's bytes are memory-mapped a window at a time (``MAP_WINDOW`` bytes, then
+    unmapped: the resident memory stays bounded whatever K) and each chunk is cast from the
+    mapped pages straight into the float64 buffer: the page cache is read once, with no copy
+    into an intermediate buffer (``pread`` copies every byte once more; measured at K = 1e6,
+    d = 30, A = 2, float32, in fresh processes taken in turn: R2PVI-TV 2.25-2.38 s of CPU
+    against 2.46-2.65 s with ``pread``, R2PVI-KL 2.37-2.52 against 2.65-3.06). The files must
+    not be truncated while a fit reads them (the writers of this module never do: they write a
+    new directory and rename it into place). Where the file cannot be mapped, ``pread`` into a
+    reused buffer. Sequential access either way, so the kernel's read-ahead fetches pages not
+    yet cached while a chunk is computed.
+
+    Also measured there: a reader thread that read and cast the next chunk while this one was
+    computed cost about twice the CPU time per pass (wall time no better), and asking the
+    kernel to read ahead (``posix_fadvise(WILLNEED)``) took 10% of a TV fit's samples for
+    pages already cached.
     """
+    import mmap
+
     f64 = np.empty(shape)
-    raw = f64 if field.dtype == np.float64 else np.empty(shape, field.dtype)
-    for s in range(0, n, chunk):
+    fd, row = field._file(), field._row
+    base = field.offset + h * field.shape[1] * row
+    win = max(1, MAP_WINDOW // max(1, chunk * row)) * chunk
+    count = int(np.prod(field.shape[2:], dtype=np.int64))
+    ws = 0
+    while ws < n:
+        we = min(n, ws + win)
+        start = base + ws * row
+        off = start % mmap.ALLOCATIONGRANULARITY
+        try:
+            mm = mmap.mmap(fd, (we - ws) * row + off, access=mmap.ACCESS_READ,
+                           offset=start - off)
+        except (OSError, ValueError):  # not mappable (e.g. some network file systems)
+            yield from _pread_chunks(field, h, ws, n, chunk, f64)
+            return
+        mapped = None
+        try:
+            mapped = np.frombuffer(mm, dtype=field.dtype, count=(we - ws) * count,
+                                   offset=off).reshape((we - ws,) + field.shape[2:])
+            for s in range(ws, we, chunk):
+                e = min(we, s + chunk)
+                np.copyto(f64[: e - s], mapped[s - ws: e - ws])
+                yield s, e, f64[: e - s]  # a copy: nothing outside holds the mapped pages
+        finally:
+            mapped = None
+            mm.close()
+        ws = we
+
+
+MAP_WINDOW = 1 << 25  # bytes of a step mapped at a time by _prefetched (32 MiB)
+
+
+def _pread_chunks(field: FileField, h, start, n, chunk, f64):
+    """:func:`_prefetched` with ``pread`` into a reused buffer, from trajectory ``start``."""
+    raw = f64 if field.dtype == np.float64 else np.empty(f64.shape, field.dtype)
+    view = memoryview(raw.reshape(-1).view(np.uint8))
+    fd, row = field._file(), field._row
+    base = field.offset + h * field.shape[1] * row
+    for s in range(start, n, chunk):
         e = min(n, s + chunk)
-        rows = field.read(h, s, e, out=raw[: e - s])
-        if rows.dtype != np.float64:
-            out = f64[: e - s]
-            np.copyto(out, rows)
-            rows = out
-        yield s, e, rows
+        nbytes = (e - s) * row
+        if os.preadv(fd, [view[:nbytes]], base + s * row) != nbytes:
+            field.read(h, s, e, out=raw[: e - s])  # a short read: the careful loop
+        if raw is not f64:
+            np.copyto(f64[: e - s], raw[: e - s])
+        yield s, e, f64[: e - s]
 
 
 def _dask_values(nxt: StoredNext, h, qmax):
@@ -767,7 +849,8 @@ class StepSource:
     """
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
-                 nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None):
+                 nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
+                 sums=None):
         self.phi, self.rewards, self.next = phi, rewards, nxt
         self.extras = dict(extras or {})
         self.nonnegative_phi = nonnegative_phi
@@ -776,6 +859,8 @@ class StepSource:
         # Phi_h^T Phi_h of every step (float64, no ridge), a cache: stored with the data, or
         # kept from the first fit that formed them (see gram()).
         self._grams = [None] * self.horizon if grams is None else list(grams)
+        # Phi_h^T 1 (column sums; E(1) = Lambda^-1 of them), cached the same way.
+        self._sums = [None] * self.horizon if sums is None else list(sums)
 
     def gram(self, h: int) -> np.ndarray | None:
         """The unweighted ``Phi_h^T Phi_h (d, d)`` of step ``h`` if known (stored with the
@@ -790,6 +875,19 @@ class StepSource:
             g = np.array(gram, dtype=np.float64)
             g.flags.writeable = False
             self._grams[h] = g
+
+    def phi_sums(self, h: int) -> np.ndarray | None:
+        """The column sums ``Phi_h^T 1 (d,)`` of step ``h`` if known (stored with the dataset
+        or formed by an earlier fit), else None. A copy."""
+        c = self._sums[h]
+        return None if c is None else np.array(c, dtype=np.float64)
+
+    def remember_phi_sums(self, h: int, sums: np.ndarray) -> None:
+        """Keep ``Phi_h^T 1`` (formed by a fit) for later fits."""
+        if self._sums[h] is None:
+            c = np.array(sums, dtype=np.float64)
+            c.flags.writeable = False
+            self._sums[h] = c
 
     @property
     def n_actions(self) -> int:
@@ -866,9 +964,16 @@ class StepSource:
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
 
-    def next_state_values(self, h: int, qmax) -> np.ndarray:
-        """``V_{h+1}`` at the K sampled next states; ``qmax(feats (n, A, d), known, nonneg)``."""
-        return self.next.values(h, qmax, self.n_trajectories, self.chunk)
+    def next_state_values(self, h: int, qmax, out: np.ndarray | None = None) -> np.ndarray:
+        """``V_{h+1}`` at the K sampled next states; ``qmax(feats (n, A, d), known, nonneg)``;
+        written into ``out (K,)`` when given (returned)."""
+        if out is not None and isinstance(self.next, StoredNext):
+            return self.next.values(h, qmax, self.n_trajectories, self.chunk, out=out)
+        v = self.next.values(h, qmax, self.n_trajectories, self.chunk)
+        if out is None:
+            return v
+        out[...] = v
+        return out
 
     def take(self, idx) -> StepSource:
         extras = {}
@@ -1097,7 +1202,15 @@ def open_directory(path, feature_map=None) -> StepSource:
         if grams.shape != (H, d_, d_) or grams.dtype != np.float64:
             raise ValueError(f"{path / files['gram']} must hold (H, d, d) = {(H, d_, d_)} "
                              f"float64 Gram matrices, got {grams.shape} {grams.dtype}")
-    return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams)
+    sums = None
+    if "phi_sums" in files:  # optional (datasets written before it have none)
+        sums = np.load(path / files["phi_sums"], allow_pickle=False)
+        H, d_ = int(mf["horizon"]), int(mf["n_features"])
+        if sums.shape != (H, d_) or sums.dtype != np.float64:
+            raise ValueError(f"{path / files['phi_sums']} must hold (H, d) = {(H, d_)} "
+                             f"float64 column sums, got {sums.shape} {sums.dtype}")
+    return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams,
+                      sums=sums)
 
 
 def _open_behaviour(path: Path, mf: dict, field, phi: Field) -> BehaviourNext:
@@ -1171,11 +1284,13 @@ def _finish(tmp: Path, path: Path, manifest: dict, overwrite: bool) -> Path:
     return path
 
 
-def _add_gram(gram: np.ndarray, rows: np.ndarray) -> None:
-    """``gram += X^T X`` for rows ``X (n, d)`` in float64 (by blocks of ``CHUNK`` rows)."""
+def _add_gram(gram: np.ndarray, rows: np.ndarray, sums: np.ndarray) -> None:
+    """``gram += X^T X`` and ``sums += X^T 1`` for rows ``X (n, d)`` in float64 (by blocks of
+    ``CHUNK`` rows)."""
     for s in range(0, rows.shape[0], CHUNK):
         x = np.asarray(rows[s:s + CHUNK], dtype=np.float64)
         gram += x.T @ x
+        sums += np.ones(x.shape[0]) @ x
 
 
 def _write_npy_header(fh, shape, dtype):
@@ -1239,15 +1354,18 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
             put("actions", source.phi.actions, source.phi.actions.dtype)
         else:  # with the Gram matrices of the stored (rounded) features, as they stream by
             grams = np.zeros((source.horizon, source.n_features, source.n_features))
+            sums = np.zeros((source.horizon, source.n_features))
 
             def gram_of_stored(h, s, e, rows):
                 rows = np.asarray(rows, dtype=store)
-                _add_gram(grams[h], rows)
+                _add_gram(grams[h], rows, sums[h])
                 return rows
 
             put("phi", source.phi, store, gram_of_stored)
             files["gram"] = GRAM_FILE
             np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
+            files["phi_sums"] = SUMS_FILE
+            np.save(tmp / SUMS_FILE, sums, allow_pickle=False)
         put("rewards", source.rewards, np.float64)
         nxt = source.next
         H, K, d = source.phi.shape
@@ -1510,6 +1628,7 @@ class DatasetWriter:
             if any_nv:
                 fields["next_values"] = ((H, K, A), np.float64)
             grams = np.zeros((H, d, d))
+            sums = np.zeros((H, d))
             for name, (shape, dt) in fields.items():
                 shards = [FileField(tmp / f"shard{i:06d}" / f"{name}.npy") if
                           (name != "next_values" or has) else None
@@ -1521,7 +1640,7 @@ class DatasetWriter:
                             rows = (np.full((k, A), np.nan) if f is None else f.read(h))
                             fh.write(np.ascontiguousarray(rows, dtype=dt).tobytes())
                             if name == "phi":
-                                _add_gram(grams[h], rows)
+                                _add_gram(grams[h], rows, sums[h])
                 for f in shards:
                     if f is not None:
                         f.close()
@@ -1533,6 +1652,7 @@ class DatasetWriter:
             for i in range(len(self._shards)):
                 shutil.rmtree(tmp / f"shard{i:06d}")
             np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
+            np.save(tmp / SUMS_FILE, sums, allow_pickle=False)
             fl = self._flags
             if self.check_simplex:
                 warn_simplex("phi", fl[0], fl[1], 2)
@@ -1541,7 +1661,7 @@ class DatasetWriter:
                 "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
                 "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
                 "dtype": self.dtype.name, "next": "behaviour" if behaviour else "stored",
-                "files": {**files, "gram": GRAM_FILE}, "shapes": shapes,
+                "files": {**files, "gram": GRAM_FILE, "phi_sums": SUMS_FILE}, "shapes": shapes,
                 "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
                 **extra,
             }

@@ -14,6 +14,8 @@ A radius ``rho_i = 0`` makes the ball ``{mu0_i}``: the result is then the plain 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ._scratch import buffer
@@ -218,14 +220,18 @@ def kl_constrained(
     The 1-D problem is solved in ``t = log b`` for all factors at once: the objective, its
     first and second derivatives on a log-spaced grid of ``b`` (one operator call for all
     factors) give each factor a bracket around its best grid point and, as a first guess,
-    the maximizer of the quintic through the bracket's ends, sharpened by a few more shared
-    evaluations around the guesses; a safeguarded Newton iteration (bisection when a step
-    leaves the bracket) refines it until its predicted gain is below 1e-14 of the values; the
-    best value seen is returned. Everything is computed in the log domain, shifted by the
-    smallest value each factor can see, with ``expm1`` for large ``b``: finite and accurate
-    for values from 0 to 1e6 and beyond and ``b`` from 1e-9 (relative to the values) to
-    ``2 (max V - min V) / rho``. The grid is scaled by the values, never by a bound such as
-    ``H r_max``.
+    the maximizer of the quintic through the bracket's ends; a safeguarded Newton iteration
+    (bisection when a step leaves the bracket) refines it until its predicted gain is below
+    1e-14 of the values; the best value seen is returned. The Newton steps need no pass over
+    the points: a few shared nodes near the guesses keep the moments ``E_i[(y/b0)^k / k!
+    exp(-y/b0)]`` (one operator call), from which a Taylor series in ``b0/b - 1`` gives any
+    factor's objective within ``|log(b/b0)| <= 0.15`` to 1e-17 per unit of weight, below the
+    rounding of a direct evaluation (where no node applies, as for ``b`` above the values'
+    scale, each factor is evaluated directly). Everything is computed in the log domain,
+    shifted by the smallest value each factor can see, with ``expm1`` for large ``b``: finite
+    and accurate for values from 0 to 1e6 and beyond and ``b`` from 1e-9 (relative to the
+    values) to ``2 (max V - min V) / rho``. The grid is scaled by the values, never by a
+    bound such as ``H r_max``.
 
     Guarantees: with ``v_range = (lo, hi)`` (unbounded when None) and ``m_i = clip(E_i(v),
     lo, hi)``, the result lies in ``[min(lower_i, m_i), m_i]``, ``lower_i = lo`` for a
@@ -281,14 +287,16 @@ def kl_constrained(
     if v_range is None and v_max is not None:
         v_range = (-np.inf, v_max)
     lo, hi = _value_range(v_range)
-    plain = E(v)
     dims = np.flatnonzero(rho > 0)
     if dims.size == 0:
-        return plain
-    cap = np.clip(plain, lo, hi)
+        return E(v)
     if b_min is not None and not (np.isfinite(b_min) and b_min > 0):
         raise ValueError(f"b_min must be a positive number or None, got {b_min!r}")
-    prob = _KLProblem(E, v, rho, dims, cap, lo, centered)
+    prob = _KLProblem(E, v, rho, dims, lo, centered)
+    prob.prepare(b_min)  # the grid's columns, read with E(v) where the operator streams
+    plain = E(v)
+    cap = np.clip(plain, lo, hi)
+    prob.set_cap(cap)
     best = prob.solve(b_min, xtol, max_iter)
     out = plain.copy()  # rho_i = 0: exactly the plain expectation
     # Jensen's floor keeps every objective value <= cap - b rho; the min only absorbs rounding.
@@ -303,7 +311,7 @@ def kl_constrained(
 class _KLProblem:
     """The KL-ball dual of the factors ``dims``: evaluation in log b on a grid and per factor."""
 
-    def __init__(self, E, v, rho, dims, cap, lo, centered):
+    def __init__(self, E, v, rho, dims, lo, centered):
         self.E, self.v, self.dims = E, v, dims
         self.rho = rho[dims]
         self.centered = bool(centered)
@@ -320,19 +328,21 @@ class _KLProblem:
             self.rows = None
         self.shared_shift = bool(np.all(self.shift == self.shift[0]))
         self._w3 = None
+        self._series = None  # Taylor moments at the local nodes (see _series_grid)
         if self.shared_shift:
             self._y_shared = v - self.shift[0]
             self._y_negative = bool(np.any(self._y_shared < 0))
-        row_sums = E(np.ones_like(v))[dims]
         # Distributions (non-negative rows): normalize by the row sums, exact up to rounding,
         # so that u -> 1 as b -> inf exactly. Otherwise u_i = E_i[exp(-V/b)] + c_i with
-        # c_i = 1 - E_i(1) for the centered estimate (E_i[exp(-V/b) - 1] + 1) and 0 if not.
-        self.norm = row_sums if E.nonnegative else np.ones(dims.size)
-        self.c = 1.0 - row_sums if self.centered and not E.nonnegative else np.zeros(dims.size)
-        plain_base = E.nonnegative or self.centered
-        self.base = np.ones(dims.size) if plain_base else row_sums
-        # Jensen's floor of log u: -m_i / b, m_i the plain estimate (per unit of row mass).
-        self.cap = cap[dims] / self.norm
+        # c_i = 1 - E_i(1) for the centered estimate (E_i[exp(-V/b) - 1] + 1) and 0 if not;
+        # then E(1) comes with the first grid (one pass over the points less).
+        self.c = self.base = None
+        if E.nonnegative:
+            self._set_row_sums(E(np.ones_like(v))[dims])
+        else:
+            self.norm = np.ones(dims.size)
+        self.cap = None  # set_cap
+        self._coarse = None  # prepare
         if E.nonnegative:
             self.lower = np.maximum(self.shift, lo)
             # rho_i >= log(1 / mu0_i(argmin)): saturated (rounding could put a grid value an
@@ -348,13 +358,40 @@ class _KLProblem:
         with np.errstate(divide="ignore", over="ignore"):
             self.b_hi = np.minimum(2.0 * spread / self.rho, _B_CAP * self.scale)
 
-    # ------------------------------------------------------------------ solver
-    def solve(self, b_min, xtol, max_iter):
+    def set_cap(self, cap):
+        """Jensen's floor of log u: ``-m_i / b``, ``m_i`` the plain estimate (clipped to the
+        value range; per unit of row mass)."""
+        self.cap = cap[self.dims] / self.norm
+
+    def prepare(self, b_min):
+        """The grid of log b and its transformed values (:meth:`_grid_fill`), registered with
+        an operator that streams its points (``include``), so that the plain estimate's pass
+        reads them too."""
         lo_b = b_min if b_min is not None else _B_FLOOR * self.scale
         hi_b = max(float(self.b_hi.max()), 4.0 * lo_b)
         tgrid = _log_grid(lo_b, hi_b, self.scale)
+        state = self._grid_fill(np.exp(tgrid))
+        include = getattr(self.E, "include", None)
+        if state[0] is not None and include is not None:
+            include(state[0])
+        self._coarse = (tgrid, state)
+
+    def _set_row_sums(self, row_sums):
+        """``norm``, ``c`` and ``base`` from the row sums ``E_i(1)`` (see ``__init__``)."""
+        m = self.dims.size
+        nonneg = self.E.nonnegative
+        if nonneg:
+            self.norm = row_sums
+        self.c = 1.0 - row_sums if self.centered and not nonneg else np.zeros(m)
+        self.base = np.ones(m) if (nonneg or self.centered) else row_sums
+
+    # ------------------------------------------------------------------ solver
+    def solve(self, b_min, xtol, max_iter):
+        if self._coarse is None:
+            self.prepare(b_min)
+        tgrid, state = self._coarse
         n_grid = tgrid.size
-        g, dg, d2g = self.on_grid(np.exp(tgrid))
+        g, dg, d2g = self._grid_eval(np.exp(tgrid), state)
         k = np.argmax(g, axis=1)
         r = np.arange(k.size)
         best = g[r, k]
@@ -366,8 +403,25 @@ class _KLProblem:
         # derivatives, known from the grid), a far better start than Newton from one end.
         first = _hermite_argmax(lo, hi, g[r, k_lo], dg[r, k_lo], d2g[r, k_lo], g[r, k_hi],
                                 dg[r, k_hi], d2g[r, k_hi])
-        first = self._refine_locally(first, lo, hi, best, tgrid[0], tgrid[-1])
         ftol = _FTOL * self.scale
+        series = np.zeros(first.size, dtype=bool)
+        if self._series_possible():
+            # Factors starting in the shifted regime (b < scale): Taylor moments at a few
+            # shared nodes covering their first steps; every Newton evaluation near a node is
+            # then a short series (no pass over the points). Factors with nothing to refine
+            # (an empty bracket at an end of the grid, or a grid point that is already
+            # optimal) need none.
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                done = ~(hi - lo > xtol * (1.0 + np.abs(t))) | (
+                    (f2 < 0) & (0.5 * f1 * f1 / np.abs(f2) <= ftol))
+            start = np.where(np.isnan(first), 0.5 * (lo + hi), first)
+            series = start < np.log(self.scale)
+            self._t_range = (float(tgrid[0]), float(tgrid[-1]))
+            self._series_cover(start[series & ~done], best)
+        if not series.all():  # the others: a local grid of exact evaluations
+            local = self._refine_locally(np.where(series, np.nan, first), lo, hi, best,
+                                         tgrid[0], tgrid[-1])
+            first = np.where(series, first, local)
         for it in range(max_iter):
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 newton = t - f1 / f2
@@ -423,55 +477,91 @@ class _KLProblem:
 
     # ------------------------------------------------------------------ moments
     def on_grid(self, bs):
-        """Objective and its t-derivatives at every grid ``b`` for every factor: (m, J) each."""
-        out = [np.empty((self.dims.size, bs.size)) for _ in range(3)]
+        """Objective and its t-derivatives at every grid ``b`` for every factor: (m, J) each.
+
+        The transformed values of all grid points go to the operator in one call (one pass
+        over the points' features), except for factors with different shifts (explicit rows).
+        """
+        return self._grid_eval(bs, self._grid_fill(bs))
+
+    def _grid_fill(self, bs):
+        """The transformed values of the grid points as the operator's columns ``(n, 3 J)``
+        (plus ``1`` for ``E(1)`` while the row sums are unknown), contiguous rows for the
+        element-wise passes; None for the columns when factors need explicit rows."""
         plain = bs >= self.scale
         n = self.v.size
-        if plain.any():
+        shifted_rows = (~plain).any() and not self.shared_shift
+        sel = plain if shifted_rows else np.ones(bs.size, dtype=bool)
+        j_all = int(sel.sum())
+        if not j_all:
+            return None, plain, j_all, False
+        ones = self.c is None  # E(1) in the same call
+        buf = buffer("klball.grid", (3 * j_all + ones, n))
+        if ones:
+            buf[-1] = 1.0
+        y = buf[:3 * j_all].reshape(3, j_all, n)
+        jp = int(plain.sum())
+        js = j_all - jp
+        if js:  # shifted grid points: the first columns
+            b = bs[~plain]
+            ys = self._y_shared
+            np.multiply.outer(-1.0 / b, np.maximum(ys, 0.0) if self._y_negative else ys,
+                              out=y[0, :js])
+            np.exp(y[0, :js], out=y[0, :js])
+            np.multiply(y[0, :js], ys, out=y[1, :js])
+            np.multiply(y[1, :js], ys, out=y[2, :js])
+        if jp:
             b = bs[plain]
-            j = b.size
-            # Transformed values as rows (3 j, n), contiguous for the element-wise passes; the
-            # operator takes their transpose.
-            y = buffer("klball.grid", (3, j, n))
-            e1 = np.multiply.outer(-1.0 / b, self.v, out=y[0])
-            ex = np.exp(e1, out=y[1])
-            # exp(-V/b) - 1: ex - 1 carries ex's rounding (<= 2^-53), which moves G = -b log u
-            # by about b 2^-53 sum |M_i| (< 1e-14 of the values for b <= 64 max |V|); expm1,
-            # exact to the last digit, for larger b (the grid is increasing).
+            e1 = np.multiply.outer(-1.0 / b, self.v, out=y[0, js:])
+            ex = np.exp(e1, out=y[1, js:])
+            # exp(-V/b) - 1: ex - 1 carries ex's rounding (<= 2^-53), which moves
+            # G = -b log u by about b 2^-53 sum |M_i| (< 1e-14 of the values for
+            # b <= 64 max |V|); expm1, exact to the last digit, for larger b.
             big = int(np.searchsorted(b, _EXPM1_FROM * self.scale, side="right"))
             np.expm1(e1[big:], out=e1[big:])
             np.subtract(ex[:big], 1.0, out=e1[:big])
             ex *= self.v
-            np.multiply(ex, self.v, out=y[2])
-            mom = self.E(y.reshape(3 * j, n).T)[self.dims]
+            np.multiply(ex, self.v, out=y[2, js:])
+        return buf.T, plain, j_all, ones
+
+    def _grid_eval(self, bs, state):
+        """:meth:`on_grid` from the columns of :meth:`_grid_fill` (one operator call)."""
+        cols, plain, j_all, ones = state
+        out = [np.empty((self.dims.size, bs.size)) for _ in range(3)]
+        if j_all:
+            mom = self.E(cols)[self.dims]
+            if ones:
+                self._set_row_sums(mom[:, -1].copy())
+                mom = mom[:, :-1]
             mom /= self.norm[:, None]
-            res = self._plain(mom[:, :j], mom[:, j:2 * j], mom[:, 2 * j:], b[None, :],
-                              self.base[:, None], self.rho[:, None], self.cap[:, None])
-            for o, val in zip(out, res, strict=True):
-                o[:, plain] = val
-        if (~plain).any():
+            mom = mom.reshape(self.dims.size, 3, j_all)
+            jp = int(plain.sum())
+            js = j_all - jp
+            if jp:
+                res = self._plain(mom[:, 0, js:], mom[:, 1, js:], mom[:, 2, js:],
+                                  bs[None, plain], self.base[:, None], self.rho[:, None],
+                                  self.cap[:, None])
+                for o, val in zip(out, res, strict=True):
+                    o[:, plain] = val
+            if js:
+                s_idx = np.flatnonzero(~plain)
+                res = self._shifted(mom[:, 0, :js], mom[:, 1, :js], mom[:, 2, :js],
+                                    self.shift[:, None], bs[None, s_idx], self.c[:, None],
+                                    self.rho[:, None], self.cap[:, None])
+                for o, val in zip(out, res, strict=True):
+                    o[:, s_idx] = val
+        if (~plain).any() and not self.shared_shift:
+            # non-negative operator whose factors see different minima: explicit rows
+            # (self.rows is set for non-negative operators)
             b = bs[~plain]
-            j = b.size
-            if self.shared_shift:
-                y = self.v - self.shift[0]
-                z = buffer("klball.grid", (3, j, n))
-                np.multiply.outer(-1.0 / b, np.maximum(y, 0.0), out=z[0])
-                np.exp(z[0], out=z[0])
-                np.multiply(z[0], y, out=z[1])
-                np.multiply(z[1], y, out=z[2])
-                mom = self.E(z.reshape(3 * j, n).T)[self.dims]
-                mom /= self.norm[:, None]
-                x0, x1, x2 = mom[:, :j], mom[:, j:2 * j], mom[:, 2 * j:]
-            else:  # non-negative operator whose factors see different minima: explicit rows
-                # (self.rows is set for non-negative operators)
-                y = np.maximum(self.v[None, :] - self.shift[:, None], 0.0)  # (m, n)
-                z = np.exp(-y[:, None, :] / b[None, :, None])  # (m, J, n)
-                x0 = np.einsum("in,ijn->ij", self.rows, z)
-                z *= y[:, None, :]
-                x1 = np.einsum("in,ijn->ij", self.rows, z)
-                z *= y[:, None, :]
-                x2 = np.einsum("in,ijn->ij", self.rows, z)
-                x0, x1, x2 = (x / self.norm[:, None] for x in (x0, x1, x2))
+            y = np.maximum(self.v[None, :] - self.shift[:, None], 0.0)  # (m, n)
+            z = np.exp(-y[:, None, :] / b[None, :, None])  # (m, J, n)
+            x0 = np.einsum("in,ijn->ij", self.rows, z)
+            z *= y[:, None, :]
+            x1 = np.einsum("in,ijn->ij", self.rows, z)
+            z *= y[:, None, :]
+            x2 = np.einsum("in,ijn->ij", self.rows, z)
+            x0, x1, x2 = (x / self.norm[:, None] for x in (x0, x1, x2))
             res = self._shifted(x0, x1, x2, self.shift[:, None], b[None, :], self.c[:, None],
                                 self.rho[:, None], self.cap[:, None])
             for o, val in zip(out, res, strict=True):
@@ -480,7 +570,33 @@ class _KLProblem:
 
     def per_factor(self, idx, b):
         """Objective and t-derivatives of factors ``idx`` (positions in ``dims``), each at its
-        own ``b``: row-wise products of the explicit weights with the transformed values."""
+        own ``b``: in the shifted regime (``b < scale``) from the Taylor moments of a node
+        within ``_SERIES_RADIUS`` (:meth:`_series_at`; nodes are added where none is), else
+        exactly (:meth:`_per_factor_exact`)."""
+        if self._series is None:
+            return self._per_factor_exact(idx, b)
+        t = np.log(b)
+        eligible = t < np.log(self.scale)
+        j, near = self._nearest_node(t)
+        missing = eligible & ~near
+        if missing.any():
+            self._series_cover(t[missing], None)
+            j, near = self._nearest_node(t)
+        use = eligible & near
+        if use.all():
+            return self._series_at(idx, b, j)
+        out = tuple(np.empty(idx.size) for _ in range(3))
+        for sel, series in ((use, True), (~use, False)):
+            if sel.any():
+                res = (self._series_at(idx[sel], b[sel], j[sel]) if series
+                       else self._per_factor_exact(idx[sel], b[sel]))
+                for o, r in zip(out, res, strict=True):
+                    o[sel] = r
+        return out
+
+    def _per_factor_exact(self, idx, b):
+        """:meth:`per_factor` by row-wise products of the explicit weights with the
+        transformed values (n exponentials per factor)."""
         g, d1, d2 = (np.empty(idx.size) for _ in range(3))
         plain = b >= self.scale
         for sel, is_plain in ((np.flatnonzero(plain), True), (np.flatnonzero(~plain), False)):
@@ -562,6 +678,88 @@ class _KLProblem:
         w = self.rows if m == self.rows.shape[0] else self.rows[rows]
         return np.stack([np.einsum("jn,jn->j", w, zs[k * m:(k + 1) * m]) for k in range(3)])
 
+    # ------------------------------------------------------------------ Taylor moments
+    def _series_possible(self) -> bool:
+        """Whether Taylor moments apply: one shift shared by all factors, ``y = V - shift >= 0``
+        at every point (ridge operators; distributions with a common support minimum)."""
+        return self.shared_shift and not self._y_negative
+
+    def _nearest_node(self, t):
+        """Index of the node nearest to each ``t`` and whether it is within the radius."""
+        nodes = self._series[0]
+        if nodes.size == 1:
+            j = np.zeros(t.size, dtype=np.intp)
+        else:
+            j = np.clip(np.searchsorted(nodes, t), 1, nodes.size - 1)
+            j = np.where(t - nodes[j - 1] <= nodes[j] - t, j - 1, j)
+        return j, np.abs(t - nodes[j]) <= _SERIES_RADIUS
+
+    def _series_cover(self, ts, best):
+        """Add nodes (within the searched range of log b) so that every ``ts`` is within
+        ``_SERIES_RADIUS`` of one: greedily, the least uncovered point and those up to two
+        radii above it share a node at the middle of their range (the Newton steps that
+        follow stay near these points). ``best`` (if given) takes the objective at the new
+        nodes (exact values, as every evaluation)."""
+        pts = np.sort(ts[np.isfinite(ts)])
+        t_min, t_max = self._t_range
+        new = []
+        i = 0
+        reach = 1.998 * _SERIES_RADIUS  # margin for the rounding of t - node
+        while i < pts.size:
+            last = int(np.searchsorted(pts, pts[i] + reach, side="right"))
+            node = 0.5 * (float(pts[i]) + float(pts[last - 1]))
+            new.append(min(max(node, t_min), t_max))
+            i = last
+        if not new:
+            return
+        g = self._series_grid(np.array(new))[0]
+        if best is not None:
+            np.maximum(best, g.max(axis=1), out=best)
+
+    def _series_grid(self, nodes):
+        """Objective and t-derivatives at new nodes (as :meth:`on_grid`), keeping the moments
+        ``E_i[C_k]``, ``C_k = (y/b)^k / k! exp(-y/b)``, ``k = 0 .. _SERIES_ORDER + 2``, of
+        every node ``b``: one exponential per point and node, the powers by products, one
+        operator call for all columns. :meth:`_series_at` then evaluates any factor at any
+        ``b'`` near a node without a pass over the points (:func:`_series_moments`)."""
+        bs = np.exp(nodes)
+        y = self._y_shared
+        order = _series_order(float(np.max(y)) / float(bs.min()))
+        n, ncol = self.v.size, order + 3
+        cols = buffer("klball.series", (bs.size, ncol, n))
+        k = np.arange(1, ncol)
+        for j, b in enumerate(bs):
+            c = cols[j]
+            np.multiply(y, -1.0 / b, out=c[0])
+            np.exp(c[0], out=c[0])
+            np.multiply.outer(1.0 / (b * k), y, out=c[1:])  # y / (k b)
+            for i in k:  # C_k = C_{k-1} y / (k b) (a loop of rows: accumulate is 6x slower)
+                np.multiply(c[i], c[i - 1], out=c[i])
+        full = np.zeros((self.dims.size, bs.size, _SERIES_ORDER + 3))  # higher terms: 0
+        mom = self.E(cols.reshape(bs.size * ncol, n).T)[self.dims]
+        mom /= self.norm[:, None]
+        full[:, :, :ncol] = mom.reshape(self.dims.size, bs.size, ncol)
+        mom = full
+        if self._series is not None and self._series[0].size:
+            old_nodes, old_bs, old_mom = self._series
+            nodes = np.concatenate([old_nodes, nodes])
+            order = np.argsort(nodes, kind="stable")
+            self._series = (nodes[order], np.concatenate([old_bs, bs])[order],
+                            np.concatenate([old_mom, mom], axis=1)[:, order])
+        else:
+            self._series = (nodes, bs, mom)
+        x0, x1, x2 = mom[:, :, 0], mom[:, :, 1] * bs, 2.0 * mom[:, :, 2] * (bs * bs)
+        return self._shifted(x0, x1, x2, self.shift[:, None], bs[None, :], self.c[:, None],
+                             self.rho[:, None], self.cap[:, None])
+
+    def _series_at(self, idx, b, j):
+        """:meth:`per_factor` of factors ``idx`` at their ``b`` from the moments of node
+        ``j`` (per factor; ``|log b - log b_j| <= _SERIES_RADIUS``)."""
+        _, bs, mom = self._series
+        x0, x1, x2 = _series_moments(mom[idx, j], bs[j], b)
+        return self._shifted(x0, x1, x2, self.shift[idx], b, self.c[idx], self.rho[idx],
+                             self.cap[idx])
+
     # ------------------------------------------------------------------ objective
     def _plain(self, e1, p1, p2, b, base, rho, cap):
         """From ``D = E[exp(-V/b) - 1]``, ``P1 = E[V exp(-V/b)]``, ``P2 = E[V^2 exp(-V/b)]``
@@ -580,6 +778,16 @@ class _KLProblem:
         ``u = exp(-m/b) X_0 + c``."""
         with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
             pos = x0 > 0
+            if pos.all() and (c > 0).all():  # the usual case, without the masks (same values)
+                q = x1 / x0
+                var = x2 / x0 - q * q
+                log_p = -m / b + np.log(x0)
+                log_u = np.logaddexp(log_p, np.log(c))
+                frac = np.exp(log_p - log_u)
+                mean = m + q
+                t1 = frac * mean / b
+                b3g2 = -frac * (var + (1.0 - frac) * mean * mean)
+                return self._finish(log_u, t1, b3g2, b, rho, cap)
             log_x = np.log(np.where(pos, x0, 1.0))
             q = np.where(x0 != 0, x1 / x0, 0.0)  # tilted mean of y
             var = np.where(x0 != 0, x2 / x0, 0.0) - q * q  # tilted variance
@@ -604,23 +812,25 @@ class _KLProblem:
         """Clip ``log u`` to ``[-m/b, 0 if centered]`` (``m = cap``, Jensen's floor) and return
         ``G, dG/dt, d2G/dt2`` of ``G(t) = -b (log u + rho)``, ``b = e^t``; ``t1 = b u'/u`` and
         ``b3g2 = b^3 g''(b)``."""
-        b = np.broadcast_to(b, log_u.shape)
-        log_lo = -cap / b
+        log_lo = -cap / b  # (b broadcasts against log_u in every formula below)
         low = ~(log_u >= log_lo)  # NaN/-inf too
-        log_u = np.where(low, log_lo, log_u)
-        t1 = np.where(low, -log_lo, t1)
-        b3g2 = np.where(low, 0.0, b3g2)
+        if low.any():
+            log_u = np.where(low, log_lo, log_u)
+            t1 = np.where(low, -log_lo, t1)
+            b3g2 = np.where(low, 0.0, b3g2)
         if self.centered:
             high = log_u > 0.0
-            log_u = np.where(high, 0.0, log_u)
-            t1 = np.where(high, 0.0, t1)
-            b3g2 = np.where(high, 0.0, b3g2)
+            if high.any():
+                log_u = np.where(high, 0.0, log_u)
+                t1 = np.where(high, 0.0, t1)
+                b3g2 = np.where(high, 0.0, b3g2)
         gp = -log_u - t1 - rho  # dg/db
         g = -b * (log_u + rho)
         d1 = b * gp
         d2 = d1 + b3g2 / b
-        bad = ~np.isfinite(g)
-        if bad.any():
+        finite = np.isfinite(g)
+        if not finite.all():
+            bad = ~finite
             g, d1, d2 = np.where(bad, -np.inf, g), np.where(bad, 0.0, d1), np.where(bad, -1.0, d2)
         return g, d1, d2
 
@@ -641,15 +851,26 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
         c5 = 6.0 * a - 3.0 * b + 0.5 * c
         # Newton on p'(s) = 0 from the end with the larger value, kept in [0, 1].
         s = np.where(g1 > g0, 1.0, 0.0)
-        for _ in range(iters):
-            p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
-            p2 = 2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))
-            s_new = np.clip(s - p1 / np.where(p2 < 0, p2, -np.inf), 0.0, 1.0)
-            if np.all(np.abs(s_new - s) <= 1e-13):
+        s_prev = np.full_like(s, np.nan)
+        a2, a3, a4, a5 = 2.0 * c2, 3.0 * c3, 4.0 * c4, 5.0 * c5  # p'(s) = c1 + a2 s + ...
+        b3, b4, b5 = 6.0 * c3, 12.0 * c4, 20.0 * c5  # p''(s) = a2 + b3 s + ...
+        for it in range(iters):
+            p1 = c1 + s * (a2 + s * (a3 + s * (a4 + s * a5)))
+            p2 = a2 + s * (b3 + s * (b4 + s * b5))
+            p2[~(p2 < 0)] = -np.inf  # Newton only where p is concave (no step elsewhere)
+            s_new = np.minimum(np.maximum(s - p1 / p2, 0.0), 1.0)
+            moved = np.abs(s_new - s) > 1e-13
+            if not moved.any():
                 s = s_new
                 break
-            s = s_new
-        p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
+            # A row back where it was two steps ago cycles for good (the map is fixed): stop
+            # iterating once every moving row cycles, each at the point the full count of
+            # iterations would reach (the cycle's parity).
+            if (s_new[moved] == s_prev[moved]).all():
+                s = np.where(moved & ((iters - 1 - it) % 2 == 1), s, s_new)
+                break
+            s_prev, s = s, s_new
+        p1 = c1 + s * (a2 + s * (a3 + s * (a4 + s * a5)))
         good = (h > 0) & (s > 0.0) & (s < 1.0) & np.isfinite(s) & np.isfinite(
             g0 + g1 + d0 + d1 + dd0 + dd1) & (np.abs(p1) <= 1e-6 * (np.abs(c1) + np.abs(h * d1)))
     return np.where(good, t0 + h * s, np.nan)
@@ -671,6 +892,56 @@ def _log_grid(lo_b, hi_b, scale):
     coarse = np.linspace(t_lo, t_mid, int(np.ceil((t_mid - t_lo) / 2.5)) + 1)
     fine = np.linspace(t_mid, t_hi, int(np.ceil((t_hi - t_mid) / 0.75)) + 1)
     return np.concatenate([coarse[:-1], fine])
+
+
+def _series_order(x_max: float) -> int:
+    """The least order N <= _SERIES_ORDER whose truncation bound (see
+    :func:`_series_moments`) is below ``_SERIES_TOL`` for ``|log(b/b0)| <= _SERIES_RADIUS``,
+    given ``x = y/b0 <= x_max``: the lesser of ``(x_max q)^(N+1) / (N+1)!`` and
+    ``(q/(1-q))^(N+1) / sqrt(2 pi (N+1))``, ``q = e^R - 1``; ``_SERIES_ORDER`` meets the second
+    for any ``x``."""
+    q = math.expm1(_SERIES_RADIUS)
+    log_tol = math.log(_SERIES_TOL)
+    for order in range(_SERIES_ORDER):
+        k = order + 1
+        if x_max * q == 0 or k * math.log(x_max * q) - math.lgamma(k + 1) <= log_tol:
+            return order
+    return _SERIES_ORDER
+
+
+def _series_moments(mom, b0, b):
+    """``X_k = E[y^k exp(-y/b)]``, k = 0, 1, 2, from the moments ``mom[:, k] = E[C_k]``,
+    ``C_k = (y/b0)^k / k! exp(-y/b0)`` of a node ``b0`` (one row per factor):
+    ``exp(-y/b) = exp(-y/b0) sum_k (-beta)^k (y/b0)^k / k!`` with ``beta = b0/b - 1``, so
+    ``X_0 = sum_k (-beta)^k E[C_k]``, ``X_1 = b0 sum_k (k+1) (-beta)^k E[C_{k+1}]``,
+    ``X_2 = b0^2 sum_k (k+1)(k+2) (-beta)^k E[C_{k+2}]``, ``k <= _SERIES_ORDER``.
+
+    Truncation: per point of weight ``|w|`` and ``x = y/b0``, the remainder of ``X_0`` is at
+    most ``|w| exp(-x (1 - |beta|)) (x |beta|)^(N+1) / (N+1)!`` (Lagrange's remainder), which
+    is at most ``|w| (x_max |beta|)^(N+1) / (N+1)!`` for ``x <= x_max`` and at most
+    ``|w| (|beta| / (1 - |beta|))^(N+1) / sqrt(2 pi (N+1))`` for any ``x`` (``z^n e^-z / n! <=
+    1 / sqrt(2 pi n)``). :func:`_series_order` takes the least N with one of them below
+    ``_SERIES_TOL = 1e-17`` for ``|log(b/b0)| <= _SERIES_RADIUS = 0.15`` (``|beta| <= e^0.15 -
+    1``); N = 22 suffices for any x. Columns above a node's order are 0. ``X_1`` and ``X_2``
+    carry the remainder times ``b0 x`` and ``b0^2 x^2``.
+    """
+    n = _SERIES_ORDER + 1
+    beta = b0 / b - 1.0
+    powers = np.empty((beta.size, n))
+    powers[:, 0] = 1.0
+    powers[:, 1:] = -beta[:, None]
+    np.multiply.accumulate(powers, axis=1, out=powers)  # (-beta)^k, k = 0 .. N
+    x0 = np.einsum("ik,ik->i", powers, mom[:, :n])
+    x1 = b0 * np.einsum("ik,ik->i", powers * _K1, mom[:, 1:n + 1])
+    x2 = (b0 * b0) * np.einsum("ik,ik->i", powers * _K12, mom[:, 2:n + 2])
+    return x0, x1, x2
+
+
+_SERIES_ORDER = 22  # at most the Taylor terms k = 0 .. 22 of exp(-y/b) around a node (X_0)
+_SERIES_TOL = 1e-17  # truncation bound per unit of |weight| (below an ulp of the values)
+_SERIES_RADIUS = 0.15  # the series serves |log b - log b_node| <= this
+_K1 = np.arange(1.0, _SERIES_ORDER + 2.0)  # k + 1, k = 0 .. N
+_K12 = _K1 * (_K1 + 1.0)  # (k + 1)(k + 2)
 
 
 # ---------------------------------------------------------------------------------- chi^2 ball

@@ -67,6 +67,18 @@ class ExpectationOperator:
         """``(E(y1), E(y2))`` for two vectors ``(n,)`` (subclasses may share one pass)."""
         return self(y1), self(y2)
 
+    def total_weights(self) -> np.ndarray:
+        """``E(1)``, the total weight ``s_i = sum_j M_ij`` of each factor ``(d,)``: 1 for a
+        true-model operator (rows are distributions)."""
+        if self.nonnegative:
+            return np.ones(self.n_dims)
+        return self(np.ones(self.n_points))
+
+    def with_total_weights(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(E(y), E(1))`` for ``y (n,)`` (a ridge operator keeps ``Phi^T W 1`` with its Gram
+        matrix, so ``E(1)`` costs a ``d x d`` solve and no pass over the points)."""
+        return self(y), self.total_weights()
+
     @property
     def matrix(self) -> np.ndarray:
         """The full (d, n) weight matrix (computed once, then cached)."""
@@ -713,6 +725,26 @@ class RidgeExpectation(ExpectationOperator):
             f2 += y2[s:s + _PAIR_CHUNK] @ rows
         linv = self.factor.linv
         return linv.T @ (linv @ f1), linv.T @ (linv @ f2)
+
+    def total_weights(self) -> np.ndarray:
+        """``E(1) = Lambda^{-1} Phi^T W 1`` (computed once per operator): for dense primal
+        rows the column sums ``Phi^T W 1`` (one pass) and the ``d x d`` solve of
+        :meth:`__call__`."""
+        if getattr(self, "_total", None) is None:
+            if self.primal_dense:
+                w = np.ones(self.n_points) if self.weights is None else self.weights
+                self._total = self._solve_sums(w @ self.phi)
+            else:
+                self._total = self.factor.regress(np.ones(self.n_points))
+        return self._total.copy()
+
+    def _solve_sums(self, sums: np.ndarray) -> np.ndarray:
+        """``Lambda^{-1} b`` for feature-space sums ``b (d,)``, as :meth:`__call__` applies
+        ``Lambda^{-1}`` (two products with ``L^{-1}`` in the primal form)."""
+        if self.factor.form == "primal" and self.factor.cols is None:
+            linv = self.factor.linv
+            return linv.T @ (linv @ sums)
+        return self.factor.solve(sums)
 
     @property
     def chol_inverse(self) -> np.ndarray:

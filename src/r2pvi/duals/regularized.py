@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import logsumexp
 
+from ._scratch import buffer
 from .fdivergence import FDivergence
 from .operators import ExpectationOperator, FactorExpectation
 from .piecewise import blockwise_max, dense_max
@@ -23,6 +24,8 @@ __all__ = [
 _TINY = 1e-250
 # kl_regularized: expm1 (instead of exp(z) - 1) once lam exceeds this many value spreads.
 _EXPM1_FROM = 64.0
+# kl_regularized: the centered moment (not the moment) is regressed above this many spreads.
+_CENTER_FROM = 1.0
 
 
 def tv_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_min=None) -> np.ndarray:
@@ -47,9 +50,7 @@ def row_sums(E: ExpectationOperator) -> np.ndarray:
     """``s_i = sum_j M_ij``, the total weight of each factor: 1 for a true-model operator (its
     rows are distributions), ``[Lambda^-1 Phi^T 1]_i`` for a ridge operator (below 1 by ridge
     shrinkage on the simplex, possibly above with overlapping features)."""
-    if E.nonnegative:
-        return np.ones(E.n_dims)
-    return E(np.ones(E.n_points))
+    return E.total_weights()
 
 
 KL_FORMS = ("normalized", "paper")
@@ -91,25 +92,42 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     v = np.asarray(v, dtype=float)
     shift, upper_v = float(np.min(v)), float(np.max(v))
     upper = upper_v if v_max is None else float(v_max)
-    z = np.subtract(v, shift)
+    # one K-sized work array (reused across steps: no page faults), transformed in place
+    z = np.subtract(v, shift, out=buffer("kl.z", v.shape))
     z *= -1.0 / lam
-    with np.errstate(under="ignore"):
-        ex = np.exp(z)
     if form == "paper":
+        with np.errstate(under="ignore"):
+            ex = np.exp(z, out=z)
         log_u = _log_moment(E, v, shift, lam, E(ex))
         return shift - lam * np.maximum(log_u, -(upper - shift) / lam)
-    # The moment and its centered version (the regression of e^{-(V-c)/lam} - 1, exact to the
-    # last digit when lam is large); their difference is the row sums E_i[1]. (Two
-    # matrix-vector products, chunk by chunk: an (n, 2) product is slower on OpenBLAS.)
-    # ex - 1 carries the absolute rounding error of ex (<= 2^-53), which moves w_i by about
-    # lam 2^-53 sum_j |M_ij| / s_i: negligible (< 1e-14 of the values' spread) unless lam is
-    # large against the spread, where every z is near 0 and expm1 keeps um exact to the last
-    # digit (where |e^z - 1| >= 1/2 the subtraction is exact anyway).
-    um = ex - 1.0
-    if lam > _EXPM1_FROM * (upper_v - shift):
-        np.expm1(z, out=um, where=ex > 0.5)
-    u, um = E.apply_pair(ex, um)
-    s = np.ones(E.n_dims) if E.nonnegative else u - um
+    # The moment u = E(e^{-(V-c)/lam}), the row sums s = E(1) and the centered moment
+    # um = E(e^{-(V-c)/lam} - 1) = u - s, from ONE regression: s = Lambda^-1 Phi^T 1 comes
+    # with the Gram matrix (its column sums are accumulated with it and stored with the data:
+    # a d x d solve, no pass over the points), and the regression is of whichever of the two
+    # moments keeps the error of the other small. Up to lam = 1 value spread, u (then
+    # um = u - s, used by the log1p form only where u > s/2, so its absolute error ~2^-53
+    # sum_j |M_ij| (u + s) moves w_i by about lam 2^-53 sum_j |M_ij| / s_i: at most one
+    # spread times that); above, um (then u = um + s, whose relative error is that of s):
+    # regressing u there would leave um = u - s with an error growing like lam / spread
+    # (measured 8x the bound at 30 spreads against a 40-digit reference). um is regressed on
+    # e^z - 1, or on expm1(z) from lam = 64 spreads on, where every z is near 0 and e^z - 1
+    # would carry the absolute rounding error of e^z (where |e^z - 1| >= 1/2 the subtraction
+    # is exact anyway). tests/test_kl_one_regression.py checks both forms against the
+    # two-regression one (u and um both regressed) under this bound.
+    # (From 64 spreads on, every z >= -1/64, so e^z > 1/2 and expm1 applies everywhere.)
+    spread = upper_v - shift
+    if lam <= _CENTER_FROM * spread:
+        with np.errstate(under="ignore"):
+            u, s = E.with_total_weights(np.exp(z, out=z))
+        um = u - s
+    else:
+        if lam > _EXPM1_FROM * spread:
+            np.expm1(z, out=z)
+        else:
+            np.exp(z, out=z)
+            z -= 1.0
+        um, s = E.with_total_weights(z)
+        u = um + s
     if np.all(s > 0.0) and np.all(u >= _TINY):  # the usual case, with d-sized operations only
         # log(u/s) = log1p(um/s): the accurate form when u/s is not small (both are
         # evaluated; the unused one may be -inf)
