@@ -194,8 +194,20 @@ def test_shifted_objective_without_masks_equals_the_masked_formulas(seed, negati
     prob._finish = finish
     got = prob._shifted(x0, x1, x2, shift, b, c, 0.0, 1.0)
     want = _shifted_reference(x0, x1, x2, shift, b, c)
-    for g, w in zip(got, want[:3], strict=True):
-        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-300)
+    # Rounding bounds scaled by the conditioning of u = p + c (c < 0 cancels) and of the
+    # variance term: 40,000 seeds of this generator stay below 7% of each bound; a wrong mask
+    # is off by O(1) or non-finite.
+    p = x0 * np.exp(-shift / b)
+    u = p + c
+    frac, q = p / u, x1 / x0
+    mean = shift + q
+    ku = (np.abs(p) + np.abs(c)) / np.abs(u)
+    scales = (ku, ku * np.abs(want[1]),
+              (ku + 1.0) * np.abs(frac) * (x2 / x0 + q * q + np.abs(1.0 - frac) * mean * mean))
+    for g, w, scale in zip(got, want[:3], scales, strict=True):
+        assert np.array_equal(np.isfinite(g), np.isfinite(w))
+        ok = np.isfinite(w)
+        assert np.all(np.abs(g[ok] - w[ok]) <= 1e-13 * scale[ok])
 
 
 def _hermite_full(t0, t1, g0, d0, dd0, g1, d1, dd1, iters=12):

@@ -11,10 +11,13 @@ is at a breakpoint, at a point where a clip becomes active, or at the stationary
 piece. :func:`segments_max` evaluates all of them for every row of coefficient arrays.
 
 :func:`blockwise_max` is the same maximization, exact, organised as branch and bound: the
-objective is evaluated exactly at the first breakpoint of every block of 16, bounded on each
-block from block sums of the weights, and :func:`segments_max` runs only on the
-(factor, block) pairs whose bound beats the best value found. The cost is O(n d) reductions
-instead of three O(n d) prefix sums and a dozen passes, the pairs refined are few.
+objective is evaluated exactly at the first breakpoint of every block of 64 (``GROUP`` blocks
+of 16) and bounded on each block from block sums of the weights; the (factor, block) pairs
+whose bound beats the best value found are split into their blocks of 16, evaluated and
+bounded the same way, and :func:`segments_max` runs only on the fine pairs whose bound still
+beats it. The cost is O(n d) reductions (the block sums) instead of three O(n d) prefix sums
+and a dozen passes; the work on every (factor, block) pair is on d n / 64 pairs, and the pairs
+refined are few.
 """
 
 from __future__ import annotations
@@ -133,48 +136,23 @@ def dense_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, 
                         scratch=True)
 
 
-class BlockScan:
-    """Exact branch-and-bound scaffolding over blocks of 16 sorted breakpoints.
+class _Level:
+    """Blocks of one level of the branch and bound: per (row, block) the exact ``E1``, ``E2``
+    at the block start, the weight ``tail`` of the points at or after it, the block's sums
+    ``s0`` of ``M`` and ``sabs`` of ``|M|``, and the block's range ``[start, end]`` of alpha
+    (broadcastable to the arrays). ``key`` names its work buffers."""
 
-    From :meth:`~r2pvi.duals.ExpectationOperator.sorted_blocks` it holds, for every factor and
-    block: the exact ``E1 = E([V]_alpha)`` and ``E2 = E([V]_alpha^2)`` at the block's first
-    breakpoint (``e1_start``, ``e2_start``), a bound ``slope`` on ``|dE1/dalpha|`` inside the
-    block (the weight after the block plus the block's sum of ``|M|``), the block's range of
-    alpha ``[start, end]`` (``end`` is the next block's start, the largest value for the last),
-    and ``E1``, ``E2`` at the largest value (``e1_top``, ``e2_top``, at ``top``). A dual then
-    bounds its objective per (factor, block) and asks :meth:`segments` for the exact segment
-    coefficients of the pairs whose bound beats the best value found.
-    """
+    key = "scan"
 
-    def __init__(self, E: ExpectationOperator, v, extra=(), second_moment: bool = True):
-        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2)
-        self.alphas = sb.alphas
-        s0, s1, s2 = sb.s0, sb.s1, sb.s2
-        self._p0, self._p1 = (np.cumsum(s, axis=1) - s for s in (s0, s1))
-        self._p2 = np.cumsum(s2, axis=1) - s2 if second_moment else None
-        self._total = self._p0[:, -1:] + s0[:, -1:]
-        self._tail = self._total - self._p0  # weight of the points at or after a block start
-        self._s0, self._sabs = s0, sb.sabs
-        self._al3 = sb.alphas.reshape(-1, BLOCK)
-        self.start = self._al3[:, 0]
-        self.end = np.append(self.start[1:], sb.alphas[-1])
-        self.top = float(sb.alphas[-1])
-        self.e1_start = self._p1 + self._tail * self.start
-        self.e1_top = self._p1[:, -1] + s1[:, -1]
-        if second_moment:
-            self.e2_start = self._p2 + self._tail * self.start**2
-            self.e2_top = self._p2[:, -1] + s2[:, -1]
-        self._pairs = sb.pairs
-
+    # dE1/dalpha inside a block is the weight of the points above alpha: the weight after the
+    # block plus a part of the block's, which lies between the sums of the block's negative and
+    # positive weights, (s0 -+ sum |M|) / 2.
     @property
     def slope(self):
         """A bound on ``|dE1/dalpha|`` inside each block (the weight after the block plus the
         block's sum of ``|M|``)."""
         return np.abs(self._tail - self._s0) + self._sabs
 
-    # dE1/dalpha inside a block is the weight of the points above alpha: the weight after the
-    # block plus a part of the block's, which lies between the sums of the block's negative and
-    # positive weights, (s0 -+ sum |M|) / 2.
     @property
     def b_lo(self):
         """A lower bound on ``dE1/dalpha`` inside each block."""
@@ -185,79 +163,300 @@ class BlockScan:
         """An upper bound on ``dE1/dalpha`` inside each block."""
         return self._tail - 0.5 * (self._s0 - self._sabs)
 
+    def slope_bounds(self):
+        """``(min(b_lo, 0), max(b_hi, 0))`` in two reused work buffers (the bounds' hot path:
+        four passes instead of the properties' six and two more for the clamps)."""
+        shape, key = self._s0.shape, self.key
+        mid = np.multiply(self._s0, -0.5, out=buffer(key + ".mid", shape))
+        mid += self._tail
+        half = np.multiply(self._sabs, 0.5, out=buffer(key + ".half", shape))
+        hi = np.add(mid, half, out=buffer(key + ".hi", shape))
+        np.maximum(hi, 0.0, out=hi)
+        lo = np.subtract(mid, half, out=mid)
+        np.minimum(lo, 0.0, out=lo)
+        return lo, hi
+
+
+class _SubBlocks(_Level):
+    """The ``group`` fine blocks inside each (row, coarse block) pair a scan refines: arrays
+    ``(P, group)``; ``blocks`` are the fine blocks' indices (clamped to the last block where
+    ``valid`` is False: past the end), ``p0, p1, p2`` their exclusive running sums."""
+
+    key = "sub"
+
+
+class BlockScan(_Level):
+    """Exact branch-and-bound scaffolding over blocks of sorted breakpoints.
+
+    From :meth:`~r2pvi.duals.ExpectationOperator.sorted_blocks` (blocks of 16) it holds, for
+    every factor and block of ``16 group`` breakpoints: the exact ``E1 = E([V]_alpha)`` and
+    ``E2 = E([V]_alpha^2)`` at the block's first breakpoint (``e1_start``, ``e2_start``), a
+    bound ``slope`` on ``|dE1/dalpha|`` inside the block (the weight after the block plus the
+    block's sum of ``|M|``), the block's range of alpha ``[start, end]`` (``end`` is the next
+    block's start, the largest value for the last), and ``E1``, ``E2`` at the largest value
+    (``e1_top``, ``e2_top``, at ``top``). A dual then bounds its objective per (factor, block),
+    splits the pairs whose bound beats the best value found into their blocks of 16
+    (:meth:`sub_blocks`, the same quantities) and asks :meth:`segments` for the exact segment
+    coefficients of the fine pairs that still beat it. With ``group > 1`` the work on all
+    (factor, block) pairs shrinks ``group`` times. The (d, nb) arrays live in reused work
+    buffers: valid until the next scan in the same thread.
+    """
+
+    def __init__(self, E: ExpectationOperator, v, extra=(), second_moment: bool = True,
+                 group: int = 1):
+        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2)
+        self.group = int(group)
+        self.alphas = sb.alphas
+        self._al3 = sb.alphas.reshape(-1, BLOCK)
+        self.top = float(sb.alphas[-1])
+        # the fine blocks (16 breakpoints each)
+        self._fine = (sb.s0, sb.s1, sb.s2, sb.sabs)
+        self._fine_start = self._al3[:, 0]
+        self._fine_end = np.append(self._fine_start[1:], self.top)
+        s0, s1, s2, sabs = (_group_sums(x, self.group) for x in self._fine)
+        # Sums over the blocks before each block (exclusive running sums, one pass each).
+        self._p0, self._p1 = (_exclusive_cumsum(s, key) for s, key in ((s0, "p0"), (s1, "p1")))
+        self._p2 = _exclusive_cumsum(s2, "p2") if second_moment else None
+        self._total = self._p0[:, -1:] + s0[:, -1:]
+        # weight of the points at or after a block start
+        self._tail = np.subtract(self._total, self._p0, out=buffer("scan.tail", s0.shape))
+        self._s0, self._sabs = s0, sabs
+        self.start = self._fine_start[::self.group]
+        self.end = np.append(self.start[1:], self.top)
+        self.e1_start = np.multiply(self._tail, self.start, out=buffer("scan.e1", s0.shape))
+        self.e1_start += self._p1
+        self.e1_top = self._p1[:, -1] + s1[:, -1]
+        self.e2_start = self.e2_top = None
+        if second_moment:
+            self.e2_start = np.multiply(self._tail, self.start**2,
+                                        out=buffer("scan.e2", s0.shape))
+            self.e2_start += self._p2
+            self.e2_top = self._p2[:, -1] + s2[:, -1]
+        self._pairs = sb.pairs
+
     def report(self, totals: dict | None) -> None:
         """Put ``E_i(1)`` (``"mass"``) and ``E_i(v)`` (``"mean"``) into ``totals`` (if a dict)."""
         if totals is not None:
-            totals["mass"] = self._total[:, 0]
+            totals["mass"] = self._total[:, 0].copy()
             totals["mean"] = self.e1_top
 
-    def segments(self, rows, blocks):
+    def sub_blocks(self, rows, blocks) -> _SubBlocks:
+        """The fine blocks (of 16) of the pairs ``(rows, blocks)`` of this scan's blocks:
+        :class:`_SubBlocks` with arrays ``(P, group)`` (exact start values from this scan's
+        running sums plus the fine block sums before them inside the block)."""
+        g = self.group
+        nb = self._fine_start.size
+        fine = blocks[:, None] * g + np.arange(g)
+        sub = _SubBlocks()
+        sub.valid = fine < nb
+        sub.blocks = np.minimum(fine, nb - 1)
+        r = rows[:, None]
+        s0f, s1f, s2f, sabsf = self._fine
+
+        def take(x):  # entries past the end repeat the last block: masked by ``valid``
+            return x[r, sub.blocks]
+
+        s0, s1 = take(s0f), take(s1f)
+        sub._s0, sub._sabs = s0, take(sabsf)
+        sub.p0 = self._p0[rows, blocks][:, None] + _exclusive_cumsum(s0, None)
+        sub.p1 = self._p1[rows, blocks][:, None] + _exclusive_cumsum(s1, None)
+        sub._tail = self._total[rows] - sub.p0
+        sub.start = np.where(sub.valid, self._fine_start[sub.blocks], self.top)
+        sub.end = np.where(sub.valid, self._fine_end[sub.blocks], self.top)
+        sub.e1_start = sub.p1 + sub._tail * sub.start
+        sub.p2 = sub.e2_start = None
+        if self._p2 is not None:
+            sub.p2 = self._p2[rows, blocks][:, None] + _exclusive_cumsum(take(s2f), None)
+            sub.e2_start = sub.p2 + sub._tail * sub.start**2
+        return sub
+
+    def segments(self, rows, blocks, prefix=None):
         """Exact coefficients ``(a, b, c, alphas)``, each ``(P, 17)``, on every segment of the
-        (factor, block) pairs ``(rows, blocks)``: on segment k ``E1 = a_k + b_k alpha`` and
-        ``E2 = c_k + b_k alpha^2``; the last column is the next block's start, reached by the
-        block's last segment (its coefficients repeated). ``c`` is None without the second
-        moment."""
+        (factor, fine block) pairs ``(rows, blocks)``: on segment k ``E1 = a_k + b_k alpha``
+        and ``E2 = c_k + b_k alpha^2``; the last column is the next block's start, reached by
+        the block's last segment (its coefficients repeated). ``c`` is None without the second
+        moment. ``prefix``: the pairs' exclusive running sums ``(p0, p1, p2)`` (from
+        :meth:`sub_blocks`); None takes this scan's (``group = 1`` only)."""
+        if prefix is None:
+            if self.group != 1:
+                raise ValueError("segments needs the pairs' running sums when group > 1")
+            p0, p1 = self._p0[rows, blocks], self._p1[rows, blocks]
+            p2 = None if self._p2 is None else self._p2[rows, blocks]
+        else:
+            p0, p1, p2 = prefix
         wb = self._pairs(rows, blocks)  # (P, 16) exact weights
         ab = self._al3[blocks]
-        a = self._p1[rows, blocks, None] + np.cumsum(wb * ab, axis=1)
-        b = self._total[rows] - (self._p0[rows, blocks, None] + np.cumsum(wb, axis=1))
+        a = p1[:, None] + np.cumsum(wb * ab, axis=1)
+        b = self._total[rows] - (p0[:, None] + np.cumsum(wb, axis=1))
         last = lambda x: np.concatenate([x, x[:, -1:]], axis=1)  # noqa: E731
-        al = np.concatenate([ab, self.end[blocks, None]], axis=1)
-        if self._p2 is None:
+        al = np.concatenate([ab, self._fine_end[blocks, None]], axis=1)
+        if p2 is None:
             return last(a), last(b), None, al
-        c = self._p2[rows, blocks, None] + np.cumsum(wb * ab * ab, axis=1)
+        c = p2[:, None] + np.cumsum(wb * ab * ab, axis=1)
         return last(a), last(b), last(c), al
 
 
+# Fine blocks (of 16 breakpoints) per block of the first level of the duals' branch and bound.
+GROUP = 4
+
+
+def _group_sums(s, group):
+    """Sums of ``s (r, nb)`` over consecutive groups of ``group`` columns (the last group may
+    be shorter): ``(r, ceil(nb / group))``."""
+    if group == 1 or s is None:
+        return s
+    r, nb = s.shape
+    full = nb // group * group
+    out = np.empty((r, -(-nb // group)))
+    head = out[:, :full // group]
+    np.add(s[:, 0:full:group], s[:, 1:full:group], out=head)
+    for k in range(2, group):
+        head += s[:, k:full:group]
+    if full < nb:
+        out[:, -1] = s[:, full:].sum(axis=1)
+    return out
+
+
+def _exclusive_cumsum(s, key):
+    """``p[:, j] = sum_{k < j} s[:, k]`` (into a reused work buffer when ``key`` is given)."""
+    p = np.empty(s.shape) if key is None else buffer("scan." + key, s.shape)
+    p[:, 0] = 0.0
+    np.cumsum(s[:, :-1], axis=1, out=p[:, 1:])
+    return p
+
+
+def _refine(scan, rows, blocks, best, start_value, bound):
+    """The second level: the fine blocks of the pairs ``(rows, blocks)``; their exact start
+    values raise ``best``; returns the fine pairs ``(rows, blocks, prefix)`` whose bound still
+    beats it."""
+    sub = scan.sub_blocks(rows, blocks)
+    vals = start_value(sub, rows)
+    vals[~sub.valid] = -np.inf
+    np.maximum.at(best, rows, vals.max(axis=1))
+    keep = (bound(sub, rows) > best[rows, None]) & sub.valid
+    pair, k = np.nonzero(keep)
+    prefix = tuple(None if x is None else x[pair, k] for x in (sub.p0, sub.p1, sub.p2))
+    return rows[pair], sub.blocks[pair, k], prefix
+
+
 def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, extra=(),
-                  totals: dict | None = None):
-    """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc).
+                  totals: dict | None = None, group: int | None = None):
+    """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc):
+    blocks of ``16 group`` breakpoints first (``GROUP`` by default), then the blocks of 16
+    inside those whose bound beats the best value, then the exact segments.
 
     ``totals``, a dict, receives ``"mass"`` and ``"mean"``: ``E_i(1)`` and ``E_i(v)`` from the
     block sums (no further pass over the data)."""
-    scan = BlockScan(E, v, extra)
+    scan = BlockScan(E, v, extra, group=GROUP if group is None else group)
     scan.report(totals)
-    best = chi2_objective(scan.e1_start, scan.e2_start, lam, mean_clip, second_clip).max(axis=1)
+    shape = scan.e1_start.shape
+    best = chi2_objective(scan.e1_start, scan.e2_start, lam, mean_clip, second_clip,
+                          out=buffer("scan.g", shape)).max(axis=1)
     top = chi2_objective(scan.e1_top, scan.e2_top, lam, mean_clip, second_clip)
     best = np.maximum(best, top)
-    # Bounds on each block: E1 within slope * width of its start, E2 within slope * the
-    # block's range of alpha^2; g grows with E1 (convex in the clipped E1) and falls with E2.
-    # dE1/dalpha = B in [b_lo, b_hi] and dE2 = B d(alpha^2) (alpha^2 monotone on a block that
-    # does not straddle 0; else the cruder bound with |B| <= slope).
-    span1 = scan.end - scan.start
-    start2, end2 = scan.start**2, scan.end**2
-    straddle = (scan.start < 0) & (scan.end > 0)
-    b_lo, b_hi = scan.b_lo, scan.b_hi
-    e1_lo = scan.e1_start + np.minimum(b_lo, 0.0) * span1
-    e1_hi = scan.e1_start + np.maximum(b_hi, 0.0) * span1
-    delta2 = end2 - start2
-    e2_lo = scan.e2_start + np.minimum(np.minimum(b_lo * delta2, b_hi * delta2), 0.0)
-    if straddle.any():
-        span2 = np.maximum(start2, end2)[straddle]
-        e2_lo[:, straddle] = scan.e2_start[:, straddle] - scan.slope[:, straddle] * span2
-    upper = np.maximum(chi2_objective(e1_lo, 0.0, lam, mean_clip),
-                       chi2_objective(e1_hi, 0.0, lam, mean_clip))
-    upper -= 0.25 / lam * (e2_lo if second_clip is None else np.clip(e2_lo, *second_clip))
+    upper = _chi2_block_bounds(scan, lam, mean_clip, second_clip)
     rows, blocks = np.nonzero(upper > best[:, None])
+    prefix = None
+    if rows.size and scan.group > 1:
+        rows, blocks, prefix = _refine(
+            scan, rows, blocks, best,
+            lambda sub, r: chi2_objective(sub.e1_start, sub.e2_start, lam, mean_clip,
+                                          second_clip),
+            lambda sub, r: _chi2_block_bounds(sub, lam, mean_clip, second_clip))
     if rows.size:
-        a, b, c, al = scan.segments(rows, blocks)
+        a, b, c, al = scan.segments(rows, blocks, prefix)
         np.maximum.at(best, rows, segments_max(a, b, c, al, lam, mean_clip, second_clip))
     return best
 
 
-def tv_ball_max(E: ExpectationOperator, v, rho, totals: dict | None = None) -> np.ndarray:
+def _chi2_block_bounds(scan: _Level, lam, mean_clip, second_clip):
+    """An upper bound on the chi^2 objective on each (row, block) of a level.
+
+    E1 lies within the slope bounds times the block's width of its start value, E2 above its
+    start value plus ``min(B, 0) d(alpha^2)``; g grows with E1 where the clipped E1 is at least
+    ``-2 lam`` (then the upper end alone) and is convex in E1 (else the larger end), and falls
+    with E2. ``dE2 = B d(alpha^2)`` with ``alpha^2`` monotone on a block that does not
+    straddle 0 (else the cruder bound with ``|B| <= slope``)."""
+    shape, key = scan.e1_start.shape, scan.key
+    lo, hi = scan.slope_bounds()  # min(b_lo, 0), max(b_hi, 0)
+    span1 = scan.end - scan.start
+    delta2 = scan.end**2 - scan.start**2
+    q = 0.25 / lam
+    monotone = mean_clip is not None and mean_clip[0] >= -2.0 * lam and np.isfinite(q)
+    if not monotone:
+        e1_lo = np.multiply(lo, span1, out=buffer(key + ".e1lo", shape))
+        e1_lo += scan.e1_start
+    # E2's lower end: B d(alpha^2) >= min(b_lo, 0) d(alpha^2) where d(alpha^2) >= 0 and
+    # max(b_hi, 0) d(alpha^2) where it is negative.
+    e2_lo = np.multiply(lo, np.maximum(delta2, 0.0), out=buffer(key + ".e2lo", shape))
+    negative = np.min(scan.start) < 0.0
+    if negative:
+        e2_lo += hi * np.minimum(delta2, 0.0)
+    e2_lo += scan.e2_start
+    if negative:
+        straddle = np.broadcast_to((scan.start < 0) & (scan.end > 0), shape)
+        if straddle.any():
+            span2 = np.broadcast_to(np.maximum(scan.start**2, scan.end**2), shape)
+            e2_lo[straddle] = (scan.e2_start - scan.slope * span2)[straddle]
+    e1_hi = np.multiply(hi, span1, out=hi)
+    e1_hi += scan.e1_start
+    upper = _g_of_mean(e1_hi, q, mean_clip, key + ".up")
+    if not monotone:
+        np.maximum(upper, _g_of_mean(e1_lo, q, mean_clip, key + ".up2"), out=upper)
+    if second_clip is not None:
+        np.clip(e2_lo, *second_clip, out=e2_lo)
+    e2_lo *= q
+    upper -= e2_lo
+    return upper
+
+
+def _g_of_mean(e1, q, mean_clip, key):
+    """``c + q c^2`` with ``c`` the clipped ``e1`` (clipped in place), into a work buffer."""
+    if mean_clip is not None:
+        np.clip(e1, *mean_clip, out=e1)
+    g = np.multiply(e1, e1, out=buffer(key, e1.shape))
+    g *= q
+    g += e1
+    return g
+
+
+def _tv_start_values(scan: _Level, rho_col):
+    """``E1 - rho alpha`` at every block start of a level."""
+    return scan.e1_start - rho_col * scan.start
+
+
+def _tv_block_bounds(scan: _Level, rho_col, f_start):
+    """``f_start + width max(b_hi - rho, 0)``: d/dalpha (E1 - rho alpha) = B - rho <= b_hi - rho
+    inside a block (and ``max(max(b_hi, 0) - rho, 0) = max(b_hi - rho, 0)`` as rho >= 0)."""
+    upper = np.subtract(scan.slope_bounds()[1], rho_col,
+                        out=buffer(scan.key + ".up", f_start.shape))
+    np.maximum(upper, 0.0, out=upper)
+    upper *= scan.end - scan.start
+    upper += f_start
+    return upper
+
+
+def tv_ball_max(E: ExpectationOperator, v, rho, totals: dict | None = None,
+                group: int | None = None) -> np.ndarray:
     """``max_k E_i([V]_alpha_k) - rho_i alpha_k`` over every breakpoint ``alpha_k`` (the
     piecewise-linear TV-ball dual without its constant), by the same branch and bound;
-    ``totals`` as in :func:`blockwise_max`."""
-    scan = BlockScan(E, v, second_moment=False)
+    ``totals`` and ``group`` as in :func:`blockwise_max`."""
+    scan = BlockScan(E, v, second_moment=False, group=GROUP if group is None else group)
     scan.report(totals)
-    f_start = scan.e1_start - rho[:, None] * scan.start
+    rho_col = rho[:, None]
+    f_start = _tv_start_values(scan, rho_col)
     best = np.maximum(f_start.max(axis=1), scan.e1_top - rho * scan.top)
-    # d/dalpha (E1 - rho alpha) = B - rho <= b_hi - rho inside a block.
-    upper = f_start + (scan.end - scan.start) * np.maximum(scan.b_hi - rho[:, None], 0.0)
+    upper = _tv_block_bounds(scan, rho_col, f_start)
     rows, blocks = np.nonzero(upper > best[:, None])
+    prefix = None
+    if rows.size and scan.group > 1:
+        rows, blocks, prefix = _refine(
+            scan, rows, blocks, best,
+            lambda sub, r: _tv_start_values(sub, rho[r, None]),
+            lambda sub, r: _tv_block_bounds(sub, rho[r, None],
+                                            _tv_start_values(sub, rho[r, None])))
     if rows.size:
-        a, b, _, al = scan.segments(rows, blocks)
+        a, b, _, al = scan.segments(rows, blocks, prefix)
         vals = (a + (b - rho[rows, None]) * al).max(axis=1)
         np.maximum.at(best, rows, vals)
     return best
