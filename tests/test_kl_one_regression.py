@@ -160,3 +160,57 @@ def test_chunked_kl_step_reads_once_with_or_without_stored_column_sums(tmp_path,
     np.save(bad / "phi_sums.npy", sums[:, :2])  # the wrong shape
     with pytest.raises(ValueError, match="column sums"):
         OfflineDataset.open(bad)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_unit_rows_take_the_column_sums_from_the_gram_matrix(weighted):
+    """Rows summing to 1 (validated at construction): ``Phi^T W 1 = Phi^T W Phi 1_d``, so the
+    chunk loop forms no product with ones; ``E(1)`` and the KL fit agree with the product
+    path within the rows' rounding; rows off the simplex (or not checked) keep the product."""
+    rng = np.random.default_rng(11)
+    K, H, d = 700, 3, 6
+    phi = rng.dirichlet(np.ones(d), size=(K, H))
+    nphi = rng.dirichlet(np.ones(d), size=(K, H, 2))
+    ds = OfflineDataset.from_features(phi, rng.random((K, H)), nphi)
+    assert ds._source.unit_rows and ds.subset(np.arange(0, K, 2))._source.unit_rows
+    with pytest.warns(r2pvi.SimplexFeatureWarning):
+        off = OfflineDataset.from_features(phi * 1.5, rng.random((K, H)), nphi)
+    assert not off._source.unit_rows
+    unchecked = OfflineDataset.from_features(phi, rng.random((K, H)), nphi, check_simplex=False)
+    assert not unchecked._source.unit_rows
+    w = rng.uniform(0.2, 3.0, K) if weighted else None
+    ds._source.chunk = 128
+    products = []
+    x = np.ascontiguousarray(phi[:, 1])
+    xw = x if w is None else x * w[:, None]
+    truth = np.linalg.solve(xw.T @ x + np.eye(d), xw.T @ np.ones(K))
+    for unit in (True, False):
+        ds._source.unit_rows = unit
+        ds._source._sums[:] = ds._source._grams[:] = [None] * H  # nothing cached
+        E = ChunkedRidgeExpectation(ds._source, 1, 1.0, weights=w)
+        y = rng.random(K)
+        a, b = E.with_total_weights(y)
+        assert E.passes == 1
+        # which path ran: the Gram matrix's row sums, or the products with ones, as the
+        # engine accumulates them (chunk by chunk, the same operations: the same bits)
+        gram, prods = np.zeros((d, d)), np.zeros(d)
+        for s in range(0, K, 128):
+            xc = x[s:s + 128]
+            gram += (xc if w is None else xc * w[s:s + 128, None]).T @ xc
+            prods += (np.ones(len(xc)) if w is None else w[s:s + 128]) @ xc
+        assert np.array_equal(E._sums, gram.sum(axis=1) if unit else prods)
+        np.testing.assert_allclose(b, truth, rtol=1e-12)
+        np.testing.assert_allclose(a, np.linalg.solve(xw.T @ x + np.eye(d), xw.T @ y),
+                                   rtol=1e-10)
+        products.append(b)
+    # the two paths differ (different sums), by rounding only
+    assert np.abs(products[0] - products[1]).max() <= 64 * EPS * np.abs(truth).max()
+    ds._source.unit_rows = True
+    for lam in (0.01, 1.0, 1e3):
+        got = r2pvi.R2PVI("kl", lam).fit(ds).weights_
+        ds._source.unit_rows = False
+        ds._source._sums[:] = [None] * H
+        ref = r2pvi.R2PVI("kl", lam).fit(ds).weights_
+        ds._source.unit_rows = True
+        ds._source._sums[:] = [None] * H
+        np.testing.assert_allclose(got, ref, rtol=1e-11, atol=1e-12)

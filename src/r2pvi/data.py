@@ -165,13 +165,13 @@ class OfflineDataset:
                     f"next_values must have shape (K, H, A) = {(K, H, A)}, got "
                     f"{np.shape(next_values)}; use NaN where the value must be learned"
                 )
-        nonneg_phi, nonneg_next, any_known = _st.validate_source(
+        nonneg_phi, nonneg_next, any_known, unit = _st.validate_source(
             p, r, n, nv, check_simplex, stacklevel=3)
         extras = _check_extras(K, H, A, states=states, actions=actions, next_states=next_states)
         known = _st.ArrayField(nv) if nv is not None and any_known else None
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.StoredNext(_st.ArrayField(n), known, nonneg_next),
-                                extras, nonneg_phi)
+                                extras, nonneg_phi, unit_rows=unit)
         return cls(_source=source)
 
     @classmethod
@@ -242,7 +242,8 @@ class OfflineDataset:
                 raise ValueError(f"known_values must have shape (S, A) = {(S, A)}, got {kt.shape}")
             if np.isnan(kt).all():
                 kt = None
-        nonneg_phi, _, _ = _st.validate_source(p, r, None, None, check_simplex, stacklevel=3)
+        nonneg_phi, _, _, unit = _st.validate_source(p, r, None, None, check_simplex,
+                                                     stacklevel=3)
         if check_simplex:
             used = tab if tab.ndim == 3 else tab[: max(H - 1, 1)]
             check_simplex_features(used, "table")
@@ -250,7 +251,8 @@ class OfflineDataset:
         extras = _check_extras(K, H, A, _owned=("next_states",), states=states,
                                actions=actions, next_states=ix.T)
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
-                                _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi)
+                                _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi,
+                                unit_rows=unit)
         return cls(_source=source)
 
     @classmethod

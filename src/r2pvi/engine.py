@@ -312,8 +312,9 @@ class ChunkedRidgeExpectation(RidgeExpectation):
 
     def total_weights(self) -> np.ndarray:
         """``E(1) = Lambda^{-1} Phi^T W 1`` from the column sums ``Phi^T W 1``, which ride along
-        with ``Lambda`` (stored with the data, or kept from an earlier pass): a ``d x d``
-        solve; a pass of its own only when neither is known."""
+        with ``Lambda`` (stored with the data, kept from an earlier pass, or, for rows that
+        sum to 1, the row sums of the Gram matrix ``Phi^T W Phi 1_d``): a ``d x d`` solve; a
+        pass of its own only when none is known."""
         if getattr(self, "_total", None) is None:
             if self._sums is None and self.weights is None:
                 self._sums = self.source.phi_sums(self.h)
@@ -362,9 +363,14 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         """One read of the step's features: ``Lambda`` (if not formed yet) and ``Phi^T W y``
         for ``y`` and every registered column; returns ``E(y)`` (None without ``y``)."""
         d = self.n_dims
+        # Rows summing to 1 (validated): Phi^T W 1 = Phi^T W Phi 1_d, the row sums of the
+        # Gram matrix (a d x d sum, no product per chunk); see StepSource.unit_rows.
+        unit = self.source.unit_rows and self._want_sums
         if self._factor is None and self.weights is None:
             known = self.source.gram(self.h)  # stored with the data, or from an earlier fit
             if known is not None:
+                if unit and self._sums is None:
+                    self._sums = known.sum(axis=1)
                 self._factor = _primal_factor(known, self.gamma, None, (self.n_points, d))
         if self._sums is None and self.weights is None:
             self._sums = self.source.phi_sums(self.h)
@@ -387,6 +393,9 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         gram = np.zeros((d, d)) if self._factor is None else None
         acc = [np.zeros((d,) + c.shape[1:]) for c in cols]
         w = self.weights
+        from_gram = colsum is not None and gram is not None and unit
+        if from_gram:
+            colsum = None
         # Dask arrays: the products are summed on the workers (the column sums as the product
         # with a column of ones); otherwise here, by chunk.
         remote = self.source.remote_products(
@@ -416,6 +425,8 @@ class ChunkedRidgeExpectation(RidgeExpectation):
                 else:
                     a += rows.T @ (c[s:e].T * w[s:e]).T
         self.passes += 1
+        if from_gram:
+            colsum = gram.sum(axis=1)
         if colsum is not None:
             self._sums = colsum
             if w is None:

@@ -103,7 +103,9 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     # The moment u = E(e^{-(V-c)/lam}), the row sums s = E(1) and the centered moment
     # um = E(e^{-(V-c)/lam} - 1) = u - s, from ONE regression: s = Lambda^-1 Phi^T 1 comes
     # with the Gram matrix (its column sums are accumulated with it and stored with the data:
-    # a d x d solve, no pass over the points), and the regression is of whichever of the two
+    # a d x d solve, no pass over the points; for rows validated to sum to 1 the row sums of
+    # the Gram matrix, Phi^T Phi 1_d, whose difference Phi^T (1 - Phi 1_d) moves s_i by at most
+    # 16 2^-52 sum_j |M_ij|: StepSource.unit_rows), and the regression is of whichever of the two
     # moments keeps the error of the other small. Up to lam = 1 value spread, u (then
     # um = u - s, used by the log1p form only where u > s/2, so its absolute error ~2^-53
     # sum_j |M_ij| (u + s) moves w_i by about lam 2^-53 sum_j |M_ij| / s_i: at most one

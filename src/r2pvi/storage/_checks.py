@@ -14,11 +14,27 @@ class SimplexFeatureWarning(UserWarning):
     """Features break the paper's simplex assumption (phi_i >= 0 and sum_i phi_i = 1)."""
 
 
+# Rows whose computed sums are within this of 1 count as summing to 1 exactly enough for
+# Phi^T W 1 = Phi^T W Phi 1_d (the engine then takes the column sums from the Gram matrix):
+# the error this leaves in E(1) = Lambda^-1 Phi^T W 1 is at most the rows' deviation times
+# sum_j |M_ij|, a few units of the rounding already in every ridge estimate. Dirichlet rows
+# from NumPy deviate by 2-6 units of 2^-52 (d = 4 to 120).
+UNIT_ROW_ATOL = 16 * 2.0 ** -52
+
+
 def simplex_flags(x: np.ndarray, atol: float = 1e-8) -> tuple[bool, bool]:
     """``(negative entries, rows not summing to 1)`` of feature rows (last axis)."""
+    return simplex_facts(x, atol)[:2]
+
+
+def simplex_facts(x: np.ndarray, atol: float = 1e-8) -> tuple[bool, bool, bool]:
+    """``(negative entries, rows not summing to 1, every row sums to 1 within
+    UNIT_ROW_ATOL)`` of feature rows (last axis), from one pass of row sums."""
     if x.size == 0:
-        return False, False
-    return bool((x < -atol).any()), bool((np.abs(x.sum(axis=-1) - 1.0) > 1e-6).any())
+        return False, False, True
+    dev = np.abs(x.sum(axis=-1) - 1.0)
+    worst = float(np.max(dev))  # NaN rows (known values) make it NaN: not unit rows
+    return bool((x < -atol).any()), bool((dev > 1e-6).any()), bool(worst <= UNIT_ROW_ATOL)
 
 
 def warn_simplex(name: str, negative: bool, off_sum: bool, stacklevel: int = 3) -> bool:
@@ -70,7 +86,8 @@ def layout_step_major(x: np.ndarray) -> np.ndarray:
 def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
                          simplex: bool = True):
     """Validate one chunk of step-major rows; returns ``(phi, next_phi)`` simplex flags
-    and non-negativity: ``(neg_phi, off_phi, neg_next, off_next, nonneg_phi, nonneg_next)``.
+    and non-negativity: ``(neg_phi, off_phi, neg_next, off_next, nonneg_phi, nonneg_next,
+    unit_rows_phi)`` (the last: phi's rows sum to 1 within ``UNIT_ROW_ATOL``).
 
     ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used. With
     ``simplex=False`` the simplex flags (row sums: most of the work) are not computed and
@@ -83,10 +100,11 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
     if next_values is not None and not last_step and np.isinf(next_values).any():
         raise ValueError(f"next_values contains {int(np.count_nonzero(np.isinf(next_values)))} "
                          "infinite entries; use NaN where the value must be learned")
-    flags = simplex_flags(phi) if simplex else (False, False)
+    facts = simplex_facts(phi) if simplex else (False, False, False)
+    flags, unit = facts[:2], facts[2]
     nonneg_phi = bool((phi >= 0).all())
     if last_step or next_phi is None:
-        return flags + (False, False, nonneg_phi, True)
+        return flags + (False, False, nonneg_phi, True, unit)
     finite = np.isfinite(next_phi).all(axis=-1)
     if not finite.all():
         # An action whose value is known needs no features: its row may be left NaN.
@@ -99,18 +117,19 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
             )
     # NaN rows (known values) count as neither negative nor off the simplex.
     next_flags = simplex_flags(next_phi) if simplex else (False, False)
-    return flags + next_flags + (nonneg_phi, not bool((next_phi < 0).any()))
+    return flags + next_flags + (nonneg_phi, not bool((next_phi < 0).any()), unit)
 
 
 def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chunk=CHUNK,
                     stacklevel=3):
     """Validate step-major arrays chunk by chunk (no full-size temporaries).
 
-    Returns ``(nonnegative_phi, nonnegative_next_phi, any_known)``.
+    Returns ``(nonnegative_phi, nonnegative_next_phi, any_known, unit_rows_phi)``; the last
+    is False when ``check_simplex`` is False (not checked).
     """
     H, K, _ = phi.shape
     acc = [False, False, False, False, True, True]
-    any_known = False
+    any_known, unit = False, bool(check_simplex)
     for h in range(H):
         last = h == H - 1
         for s in range(0, K, chunk):
@@ -126,13 +145,14 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
                 acc[i] = acc[i] or flags[i]
             acc[4] = acc[4] and flags[4]
             acc[5] = acc[5] and flags[5]
+            unit = unit and flags[6]
             if nv is not None and not last and not any_known:
                 any_known = bool((~np.isnan(nv)).any())
     if check_simplex:
         warn_simplex("phi", acc[0], acc[1], stacklevel)
         if next_phi is not None:
             warn_simplex("next_phi", acc[2], acc[3], stacklevel)
-    return acc[4], acc[5], any_known
+    return acc[4], acc[5], any_known, unit
 
 
 def _counted(exc: ValueError, phi, rewards, next_values, chunk) -> ValueError:

@@ -69,10 +69,14 @@ class StepSource:
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
                  nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
-                 sums=None):
+                 sums=None, unit_rows: bool = False):
         self.phi, self.rewards, self.next = phi, rewards, nxt
         self.extras = dict(extras or {})
         self.nonnegative_phi = nonnegative_phi
+        # True when validation found every taken-action row summing to 1 (within
+        # storage._checks.UNIT_ROW_ATOL): then Phi^T W 1 = Phi^T W Phi 1_d, the Gram
+        # matrix's row sums, and E(1) needs no pass of its own.
+        self.unit_rows = bool(unit_rows)
         self.chunk = int(chunk)
         self.horizon, self.n_trajectories, self.n_features = phi.shape
         # Phi_h^T Phi_h of every step (float64, no ridge), a cache: stored with the data, or
@@ -205,4 +209,5 @@ class StepSource:
                           phi.shape[2]) if isinstance(phi, MappedField) else ArrayField(
                               phi.take(idx))
         return StepSource(phi, ArrayField(self.rewards.take(idx)),
-                          self.next.take(idx), extras, self.nonnegative_phi, self.chunk)
+                          self.next.take(idx), extras, self.nonnegative_phi, self.chunk,
+                          unit_rows=self.unit_rows)
