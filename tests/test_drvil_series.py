@@ -214,13 +214,7 @@ def _hermite_full(t0, t1, g0, d0, dd0, g1, d1, dd1, iters=12):
     """The quintic maximizer with every Newton iteration run (no early stop on cycles)."""
     h = t1 - t0
     with np.errstate(all="ignore"):
-        c1, c2 = h * d0, 0.5 * h * h * dd0
-        a = g1 - (g0 + c1 + c2)
-        b = h * d1 - (c1 + 2.0 * c2)
-        c = h * h * dd1 - 2.0 * c2
-        c3 = 10.0 * a - 4.0 * b + 0.5 * c
-        c4 = -15.0 * a + 7.0 * b - c
-        c5 = 6.0 * a - 3.0 * b + 0.5 * c
+        c1, c2, c3, c4, c5 = C._quintic_coefficients(t0, t1, g0, d0, dd0, g1, d1, dd1)
         s = np.where(g1 > g0, 1.0, 0.0)
         for _ in range(iters):
             p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))

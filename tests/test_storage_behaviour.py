@@ -14,26 +14,18 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_storage import ESTIMATORS as STORAGE_ESTIMATORS
 
 import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset, storage
-from r2pvi.algorithms import DRPVI, DRVIL
 from r2pvi.envs import FiniteLinearMDP
 from r2pvi.storage import ArrayField, BehaviourNext, behaviour_split
 
 H, A = 5, 2
 CENTERS = np.linspace(0.0, 1.0, 4)
 
-ESTIMATORS = {
-    "PEVI": lambda: r2pvi.PEVI(beta=0.1),
-    "TV": lambda: r2pvi.R2PVI("tv", 0.3, beta=0.1),
-    "KL": lambda: r2pvi.R2PVI("kl", 0.3, beta=0.1),
-    "chi2": lambda: r2pvi.R2PVI("chi2", 0.3, beta=0.1),
-    "DRPVI": lambda: DRPVI(0.2, beta=0.1),
-    "DRVI-L": lambda: DRVIL(0.2, beta=0.1),
-    "VA-TV": lambda: r2pvi.R2PVI("tv", 0.3, beta=0.1, variance_aware=True),
-    "PEVI-pooled": lambda: r2pvi.PEVI(beta=0.1, time_homogeneous=True),
-}
+ESTIMATORS = {**STORAGE_ESTIMATORS,
+              "PEVI-pooled": lambda: r2pvi.PEVI(beta=0.1, time_homogeneous=True)}
 
 
 def rbf_map(obs, actions):

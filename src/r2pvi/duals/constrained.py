@@ -835,6 +835,19 @@ class _KLProblem:
         return g, d1, d2
 
 
+def _quintic_coefficients(t0, t1, g0, d0, dd0, g1, d1, dd1):
+    """``(c1, ..., c5)`` of the quintic ``p(s) = g0 + c1 s + ... + c5 s^5`` on ``s in [0, 1]``
+    (``t = t0 + s (t1 - t0)``) with the given values, first and second derivatives in t at
+    both ends (quintic Hermite interpolation)."""
+    h = t1 - t0
+    c1, c2 = h * d0, 0.5 * h * h * dd0
+    a = g1 - (g0 + c1 + c2)
+    b = h * d1 - (c1 + 2.0 * c2)
+    c = h * h * dd1 - 2.0 * c2
+    c3 = 10.0 * a - 4.0 * b + 0.5 * c
+    return c1, c2, c3, -15.0 * a + 7.0 * b - c, 6.0 * a - 3.0 * b + 0.5 * c
+
+
 def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
     """Per row, the maximizer in ``(t0, t1)`` of the quintic with the given values, first and
     second derivatives at both ends (NaN where the data are not finite, the interval is empty
@@ -842,13 +855,7 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
     which alone decides the result."""
     h = t1 - t0
     with np.errstate(all="ignore"):
-        c1, c2 = h * d0, 0.5 * h * h * dd0
-        a = g1 - (g0 + c1 + c2)
-        b = h * d1 - (c1 + 2.0 * c2)
-        c = h * h * dd1 - 2.0 * c2
-        c3 = 10.0 * a - 4.0 * b + 0.5 * c
-        c4 = -15.0 * a + 7.0 * b - c
-        c5 = 6.0 * a - 3.0 * b + 0.5 * c
+        c1, c2, c3, c4, c5 = _quintic_coefficients(t0, t1, g0, d0, dd0, g1, d1, dd1)
         # Newton on p'(s) = 0 from the end with the larger value, kept in [0, 1].
         s = np.where(g1 > g0, 1.0, 0.0)
         s_prev = np.full_like(s, np.nan)
