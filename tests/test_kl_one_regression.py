@@ -178,6 +178,13 @@ def test_unit_rows_take_the_column_sums_from_the_gram_matrix(weighted):
     assert not off._source.unit_rows
     unchecked = OfflineDataset.from_features(phi, rng.random((K, H)), nphi, check_simplex=False)
     assert not unchecked._source.unit_rows
+    # float32 rows (p, 1 - p) sum to 1 in float32 but not in float64, where the fits are
+    p = rng.uniform(size=(K, H)).astype(np.float32)
+    rows32 = np.stack([p, 1 - p], axis=-1)
+    assert np.abs(rows32.sum(-1, dtype=np.float64) - 1).max() > 1e-9
+    f32 = OfflineDataset.from_features(rows32, rng.random((K, H)),
+                                       np.repeat(rows32[:, :, None], 2, axis=2), dtype="float32")
+    assert not f32._source.unit_rows
     w = rng.uniform(0.2, 3.0, K) if weighted else None
     ds._source.chunk = 128
     products = []

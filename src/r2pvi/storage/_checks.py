@@ -32,7 +32,9 @@ def simplex_facts(x: np.ndarray, atol: float = 1e-8) -> tuple[bool, bool, bool]:
     UNIT_ROW_ATOL)`` of feature rows (last axis), from one pass of row sums."""
     if x.size == 0:
         return False, False, True
-    dev = np.abs(x.sum(axis=-1) - 1.0)
+    # in float64, as the fits see the rows (a float32 sum can round to 1.0 exactly while the
+    # float64 sum of the same float32 numbers is 3e-8 off)
+    dev = np.abs(x.sum(axis=-1, dtype=np.float64) - 1.0)
     worst = float(np.max(dev))  # NaN rows (known values) make it NaN: not unit rows
     return bool((x < -atol).any()), bool((dev > 1e-6).any()), bool(worst <= UNIT_ROW_ATOL)
 
