@@ -63,8 +63,11 @@ class StepSource:
     """The per-step provider behind an :class:`~r2pvi.OfflineDataset`.
 
     ``phi (H, K, d)`` and ``rewards (H, K)`` fields, a :class:`NextStates`, trajectory-major
-    extras and cached facts. The engine calls :meth:`phi_step`, :meth:`rewards_step` and
-    :meth:`next_state_values`; nothing else of the data is read while fitting.
+    extras and cached facts. While fitting, the engine reads the data only through
+    :meth:`phi_chunks` (a step's features by chunk), :meth:`phi_step` (a whole step, for rules
+    that need explicit rows), :meth:`remote_products` (Dask: sums formed on the workers),
+    :meth:`phi_times`, :meth:`rewards_step` and :meth:`next_state_values`; :meth:`gram` and
+    :meth:`phi_sums` give cached or stored sums.
     """
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
