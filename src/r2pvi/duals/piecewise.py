@@ -328,12 +328,13 @@ def _exclusive_cumsum(s, key):
 def _refine(scan, rows, blocks, best, start_value, bound):
     """The second level: the fine blocks of the pairs ``(rows, blocks)``; their exact start
     values raise ``best``; returns the fine pairs ``(rows, blocks, prefix)`` whose bound still
-    beats it."""
+    beats it. ``bound(sub, rows, start)`` gets the start values (formed once)."""
     sub = scan.sub_blocks(rows, blocks)
     vals = start_value(sub, rows)
+    upper = bound(sub, rows, vals)
     vals[~sub.valid] = -np.inf
     np.maximum.at(best, rows, vals.max(axis=1))
-    keep = (bound(sub, rows) > best[rows, None]) & sub.valid
+    keep = (upper > best[rows, None]) & sub.valid
     pair, k = np.nonzero(keep)
     prefix = tuple(None if x is None else x[pair, k] for x in (sub.p0, sub.p1, sub.p2))
     return rows[pair], sub.blocks[pair, k], prefix
@@ -362,7 +363,7 @@ def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=No
             scan, rows, blocks, best,
             lambda sub, r: chi2_objective(sub.e1_start, sub.e2_start, lam, mean_clip,
                                           second_clip),
-            lambda sub, r: _chi2_block_bounds(sub, lam, mean_clip, second_clip))
+            lambda sub, r, start: _chi2_block_bounds(sub, lam, mean_clip, second_clip))
     if rows.size:
         a, b, c, al = scan.segments(rows, blocks, prefix)
         np.maximum.at(best, rows, segments_max(a, b, c, al, lam, mean_clip, second_clip))
@@ -453,8 +454,7 @@ def tv_ball_max(E: ExpectationOperator, v, rho, totals: dict | None = None,
         rows, blocks, prefix = _refine(
             scan, rows, blocks, best,
             lambda sub, r: _tv_start_values(sub, rho[r, None]),
-            lambda sub, r: _tv_block_bounds(sub, rho[r, None],
-                                            _tv_start_values(sub, rho[r, None])))
+            lambda sub, r, start: _tv_block_bounds(sub, rho[r, None], start))
     if rows.size:
         a, b, _, al = scan.segments(rows, blocks, prefix)
         vals = (a + (b - rho[rows, None]) * al).max(axis=1)
