@@ -585,7 +585,7 @@ def backward_induction(
                 if time_homogeneous or source is None:
                     v_next = qmax(next_phi, next_known, nonneg)
                     next_state_values[h] = v_next
-                else:  # written in place for stored next features (other forms copy)
+                else:  # written in place: no K-sized temporary
                     v_next = source.next_state_values(h, qmax, out=next_state_values[h])
                 if value_moments:  # only the variance-aware variants need them
                     if chunked:

@@ -221,7 +221,7 @@ class BehaviourNext(NextStates):
         return None if self.next_values is None else _as_float64(
             self.next_values.read(h, start, stop))
 
-    def values(self, h, qmax, n, chunk):
+    def values(self, h, qmax, n, chunk, out=None):
         index = self._index(h)
         A, d = self.n_actions, self.rest.shape[3]
         m = min(chunk, n)
@@ -229,7 +229,7 @@ class BehaviourNext(NextStates):
         order = np.empty((m, A), dtype=np.intp)
         rows = np.arange(m)
         f64 = np.empty((m, A, d))
-        out = np.empty(n)
+        out = np.empty(n) if out is None else out
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
             feats = f64[: e - s]

@@ -24,9 +24,10 @@ class NextStates:
         """Known next-state action values ``(n, A)`` (NaN: learn), or None."""
         return None
 
-    def values(self, h, qmax, n, chunk) -> np.ndarray:
-        """``V_{h+1}`` at the K next states: ``qmax(features, known, nonneg) -> (n,)`` by chunk."""
-        out = np.empty(n)
+    def values(self, h, qmax, n, chunk, out=None) -> np.ndarray:
+        """``V_{h+1}`` at the K next states: ``qmax(features, known, nonneg) -> (n,)`` by chunk,
+        written into ``out (n,)`` when given (returned)."""
+        out = np.empty(n) if out is None else out
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
             feats = _as_float64(self.features(h, s, e))
@@ -141,12 +142,12 @@ class TableNext(NextStates):
             return None
         return self.known_table[self.index.read(h, start, stop)]
 
-    def values(self, h, qmax, n, chunk):
+    def values(self, h, qmax, n, chunk, out=None):
         table = _as_float64(self._table(h))
         if table.shape[0] > n:  # more states than samples: evaluate the sampled ones only
-            return super().values(h, qmax, n, chunk)
+            return super().values(h, qmax, n, chunk, out)
         v_table = qmax(table, self.known_table, self.nonnegative)
-        out = np.empty(n)
+        out = np.empty(n) if out is None else out
         for s, e, idx in self.index.chunks(h, chunk):
             np.take(v_table, idx, out=out[s:e])
         return out

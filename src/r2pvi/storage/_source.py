@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._fields import CHUNK, ArrayField, DaskField, Field, FileField, MappedField, _as_float64
-from ._next import NextStates, StoredNext
+from ._next import NextStates
 from ._reads import _prefetched
 
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
@@ -193,13 +193,7 @@ class StepSource:
     def next_state_values(self, h: int, qmax, out: np.ndarray | None = None) -> np.ndarray:
         """``V_{h+1}`` at the K sampled next states; ``qmax(feats (n, A, d), known, nonneg)``;
         written into ``out (K,)`` when given (returned)."""
-        if out is not None and isinstance(self.next, StoredNext):
-            return self.next.values(h, qmax, self.n_trajectories, self.chunk, out=out)
-        v = self.next.values(h, qmax, self.n_trajectories, self.chunk)
-        if out is None:
-            return v
-        out[...] = v
-        return out
+        return self.next.values(h, qmax, self.n_trajectories, self.chunk, out=out)
 
     def take(self, idx) -> StepSource:
         extras = {}
