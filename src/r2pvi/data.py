@@ -661,6 +661,10 @@ class OfflineDataset:
         if z.ndim not in (1, 2) or z.shape[0] != self.n_features:
             raise ValueError(f"z must have shape (d,) or (d, m) with d = {self.n_features}, "
                              f"got {z.shape}")
+        return self._step_product(h, z)
+
+    def _step_product(self, h: int, z: np.ndarray) -> np.ndarray:
+        """``phi_h @ z`` for a validated float64 ``z`` (the storage decides where)."""
         return self._source.phi_times(h, z)
 
     def subset(self, indices) -> OfflineDataset:

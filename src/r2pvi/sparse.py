@@ -239,12 +239,8 @@ class SparseOfflineDataset(OfflineDataset):
         nv = None if self._next_values is None else self._next_values[h]
         return self._sphi[h], self._rewards[h], self._snext[h], nv
 
-    def step_times(self, h: int, z) -> np.ndarray:
+    def _step_product(self, h: int, z: np.ndarray) -> np.ndarray:
         """``phi_h @ z`` for the sparse rows of step ``h`` (float64)."""
-        z = np.asarray(z, dtype=np.float64)
-        if z.ndim not in (1, 2) or z.shape[0] != self.n_features:
-            raise ValueError(f"z must have shape (d,) or (d, m) with d = {self.n_features}, "
-                             f"got {z.shape}")
         return np.asarray(self._sphi[h] @ z, dtype=np.float64)
 
     def subset(self, indices) -> SparseOfflineDataset:

@@ -162,6 +162,11 @@ class DaskField(Field):
     def take(self, idx):
         return np.asarray(self.array[:, np.asarray(idx)].compute())
 
+    def step_rows(self, h):
+        """Step ``h`` as a lazy ``(K, d)`` Dask array chunked along trajectories only."""
+        x = self.array[h]
+        return x.rechunk((x.chunks[0], -1))
+
     def chunks(self, h, chunk):
         # Dask's own chunks along trajectories, computed where the data is.
         bounds = np.cumsum((0,) + tuple(self.array.chunks[1]))

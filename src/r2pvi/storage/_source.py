@@ -21,8 +21,7 @@ def _dask_products(field: DaskField, h, cols, weights, with_gram):
     """
     import dask.array as da
 
-    x = field.array[h]
-    x = x.rechunk((x.chunks[0], -1))  # chunks along trajectories only
+    x = field.step_rows(h)
     K, d = x.shape
     cols = [np.asarray(c, dtype=np.float64) for c in cols]
     widths = [1 if c.ndim == 1 else int(np.prod(c.shape[1:])) for c in cols]
@@ -174,8 +173,7 @@ class StepSource:
         chunk, for Dask arrays on the workers (one task per trajectory chunk)."""
         field = self.phi
         if isinstance(field, DaskField):
-            x = field.array[h]
-            x = x.rechunk((x.chunks[0], -1))
+            x = field.step_rows(h)
             out = x.map_blocks(lambda b: np.asarray(b, dtype=np.float64) @ z,
                                chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
                                drop_axis=None if z.ndim == 2 else 1)
