@@ -9,7 +9,7 @@ import numpy as np
 
 from .._validation import check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
-from ..duals.ranges import project_onto_range, value_range
+from ..duals.ranges import project_onto_range, value_extent, value_range
 from ..duals.regularized import (
     KL_FORMS,
     chi2_regularized,
@@ -28,11 +28,12 @@ THEORY = "theory"
 __all__ = ["R2PVI", "TVRule", "KLRule", "Chi2Rule", "FDivergenceRule"]
 
 
-def _step_range(v, ctx, v_min="data"):
+def _step_range(v, ctx, v_min="data", extent=None):
     """``[lower, upper]`` of ``V_{h+1}`` (:func:`~r2pvi.duals.ranges.value_range`): 0 (or a
-    negative known ``v_min``) to the step's own bound ``(H - h - 1) r_max``."""
+    negative known ``v_min``) to the step's own bound ``(H - h - 1) r_max``. ``extent``:
+    ``(min v, max v)`` if the rule has them."""
     lower = 0.0 if v_min == "data" else min(0.0, float(v_min))
-    return value_range(v, ctx.next_value_bound, lower)
+    return value_range(v, ctx.next_value_bound, lower, extent=extent)
 
 
 class TVRule(StepRule):
@@ -42,8 +43,9 @@ class TVRule(StepRule):
         self.lam, self.v_min = lam, v_min
 
     def __call__(self, E, v, ctx):
-        w = tv_regularized(E, v, self.lam, _floor(self.v_min, v))
-        return project_onto_range(w, *_step_range(v, ctx, self.v_min))
+        ext = value_extent(v)  # once: the floor and the step's range
+        w = tv_regularized(E, v, self.lam, ext[0] if self.v_min == "data" else self.v_min)
+        return project_onto_range(w, *_step_range(v, ctx, self.v_min, ext))
 
 
 class KLRule(StepRule):
@@ -55,9 +57,11 @@ class KLRule(StepRule):
         self.lam, self.form = lam, form
 
     def __call__(self, E, v, ctx):
-        lo, hi = _step_range(v, ctx)
+        ext = value_extent(v)  # once: the step's range and the dual's shift and spread
+        lo, hi = _step_range(v, ctx, extent=ext)
         cap = hi if self.form == "normalized" else ctx.v_upper
-        return project_onto_range(kl_regularized(E, v, self.lam, cap, self.form), lo, hi)
+        w = kl_regularized(E, v, self.lam, cap, self.form, extent=ext)
+        return project_onto_range(w, lo, hi)
 
 
 class Chi2Rule(StepRule):

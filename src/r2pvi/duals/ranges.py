@@ -18,16 +18,32 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["value_range", "project_onto_range"]
+__all__ = ["value_range", "value_extent", "project_onto_range"]
 
 
-def value_range(v: np.ndarray, upper: float, lower: float = 0.0) -> tuple[float, float]:
+def value_extent(v: np.ndarray) -> tuple[float, float]:
+    """``(min v, max v)`` as floats: computed once per step by the rules and handed to
+    :func:`value_range` and the duals that need them (each is a pass over the K values).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> value_extent(np.array([0.5, 2.0, 1.0]))
+    (0.5, 2.0)
+    """
+    v = np.asarray(v, dtype=float)
+    return float(np.min(v)), float(np.max(v))
+
+
+def value_range(v: np.ndarray, upper: float, lower: float = 0.0, *,
+                extent: tuple[float, float] | None = None) -> tuple[float, float]:
     """``(lower, upper)``: the known range of the next-step values.
 
     ``lower`` defaults to 0, where the engine clips ``Q_{h+1}`` (pass a smaller known lower
     bound if values can be negative); ``upper`` is the step's bound ``(H - h - 1) r_max``.
     Each is widened to ``min(v)`` / ``max(v)`` if known values (absorbing states, stopping
-    payoffs) lie outside it.
+    payoffs) lie outside it. ``extent``: ``(min v, max v)`` when already known
+    (:func:`value_extent`), to save the two passes over ``v``.
 
     Examples
     --------
@@ -37,8 +53,8 @@ def value_range(v: np.ndarray, upper: float, lower: float = 0.0) -> tuple[float,
     >>> value_range(np.array([-0.5, 2.0]), upper=1.0)
     (-0.5, 2.0)
     """
-    v = np.asarray(v, dtype=float)
-    return min(float(lower), float(np.min(v))), max(float(upper), float(np.max(v)))
+    v_lo, v_hi = value_extent(v) if extent is None else extent
+    return min(float(lower), v_lo), max(float(upper), v_hi)
 
 
 def project_onto_range(w: np.ndarray, lower: float, upper: float, plain=None) -> np.ndarray:
@@ -58,7 +74,7 @@ def project_onto_range(w: np.ndarray, lower: float, upper: float, plain=None) ->
     array([1. , 0.5])
     """
     w = np.asarray(w, dtype=float)
-    if plain is None:
-        return np.clip(w, lower, upper)
+    if plain is None:  # np.clip's semantics (NaN stays NaN) without its Python-level overhead
+        return np.minimum(np.maximum(w, lower), upper)
     top = np.clip(np.asarray(plain, dtype=float), lower, upper)
     return np.minimum(np.maximum(w, lower), top)

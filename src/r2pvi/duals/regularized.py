@@ -15,6 +15,7 @@ from ._scratch import buffer
 from .fdivergence import FDivergence
 from .operators import ExpectationOperator, FactorExpectation
 from .piecewise import blockwise_max, dense_max
+from .ranges import value_extent
 
 __all__ = [
     "tv_regularized", "kl_regularized", "chi2_regularized", "f_regularized", "row_sums",
@@ -57,7 +58,8 @@ KL_FORMS = ("normalized", "paper")
 
 
 def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None,
-                   form: str = "normalized") -> np.ndarray:
+                   form: str = "normalized", *,
+                   extent: tuple[float, float] | None = None) -> np.ndarray:
     """KL: ``-lam log E_i[exp(-V/lam)]`` (paper, Prop. KL duality and eq. (KL-estimation)).
 
     ``form="normalized"`` (default) estimates each factor as the ridge regression estimates
@@ -75,7 +77,9 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
 
     ``v_max`` is the upper bound on V (the floor ``exp(-V_max/lam)`` of the paper's form, a cap
     ``w_i <= V_max`` in both forms, reached when the estimated moment is <= 0); None takes the
-    maximum of ``v``. Computed in the log domain, shifted by the minimum value, so it is
+    maximum of ``v``. ``extent``: ``(min v, max v)`` when already known
+    (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``. Computed in
+    the log domain, shifted by the minimum value, so it is
     finite and exact for ``lam`` from 1e-3 to 1e3 and beyond; factors whose shifted estimate
     underflows are recomputed by a sign-aware log-sum-exp over their explicit weights.
 
@@ -90,7 +94,7 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     if form not in KL_FORMS:
         raise ValueError(f"form must be one of {KL_FORMS}, got {form!r}")
     v = np.asarray(v, dtype=float)
-    shift, upper_v = float(np.min(v)), float(np.max(v))
+    shift, upper_v = value_extent(v) if extent is None else extent
     upper = upper_v if v_max is None else float(v_max)
     # one K-sized work array (reused across steps: no page faults), transformed in place
     z = np.subtract(v, shift, out=buffer("kl.z", v.shape))
@@ -130,12 +134,17 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
             z -= 1.0
         um, s = E.with_total_weights(z)
         u = um + s
-    if np.all(s > 0.0) and np.all(u >= _TINY):  # the usual case, with d-sized operations only
-        # log(u/s) = log1p(um/s): the accurate form when u/s is not small (both are
-        # evaluated; the unused one may be -inf)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            log_norm = np.where(u > 0.5 * s, np.log1p(um / s), np.log(u) - np.log(s))
-        return np.minimum(s * (shift - lam * log_norm), upper)
+    if s.min() > 0.0 and u.min() >= _TINY:  # the usual case, with d-sized operations only
+        # log(u/s) = log1p(um/s): the accurate form when u/s is not small; log(u) - log(s)
+        # where it is (both evaluated then; the unused one may be -inf)
+        near_one = u > 0.5 * s
+        if near_one.all():
+            log_norm = np.log1p(um / s)
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                log_norm = np.where(near_one, np.log1p(um / s), np.log(u) - np.log(s))
+        w = s * (shift - lam * log_norm)
+        return np.minimum(w, upper, out=w)
     live = s > 0.0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         safe_s = np.where(live, s, 1.0)
