@@ -11,7 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from r2pvi.duals import RidgeExpectation, cholesky_gram
-from r2pvi.duals.operators import BLOCK, ExpectationOperator, sort_breakpoints
+from r2pvi.duals.operators import (
+    BLOCK,
+    ExpectationOperator,
+    fine_blocks,
+    sort_breakpoints,
+    sort_order,
+)
 from r2pvi.duals.piecewise import (
     BlockScan,
     _chi2_block_bounds,
@@ -190,3 +196,84 @@ def test_scan_start_values_are_the_exact_objective_at_block_starts():
     np.testing.assert_allclose(scan.e2_start, e2, rtol=0, atol=1e-12)
     g = chi2_objective(scan.e1_start, scan.e2_start, 0.3)
     np.testing.assert_allclose(g, chi2_objective(e1, e2, 0.3), rtol=0, atol=1e-11)
+
+
+@settings(max_examples=40, deadline=None)
+@given(cases, st.sampled_from([2, 3, 4]), st.booleans())
+def test_ridge_coarse_and_fine_block_sums_equal_the_explicit_weights(case, group, moments3):
+    """With ``group > 1`` the ridge operator maps only the sums over blocks of ``16 group`` by
+    Lambda^-1 and the sums of the blocks of 16 inside chosen blocks on demand (``fine``); both
+    equal the sums of the explicit weight columns (``sabs``: at least), past-the-end blocks of
+    16 repeat the last one, and the generic operator gives the same."""
+    E, v = ridge_case(**case)
+    moments = 3 if moments3 else 2
+    fast = E.sorted_blocks(v, (), moments=moments, group=group)
+    ref = ExpectationOperator.sorted_blocks(E, v, (), moments=moments)  # blocks of 16
+    generic = ExpectationOperator.sorted_blocks(E, v, (), moments=moments, group=group)
+    names = ("s0", "s1", "s2", "sabs")
+    scale = 1.0 + np.abs(E.matrix).sum(axis=1, keepdims=True) * (1.0 + np.abs(v).max()) ** 2
+    d, nb = ref.s0.shape
+    nc = -(-nb // group)
+    starts = np.arange(0, nb, group)
+    for name in names[:3] if moments3 else names[:2]:
+        want = np.add.reduceat(getattr(ref, name), starts, axis=1)
+        for got in (getattr(fast, name), getattr(generic, name)):
+            assert got.shape == (d, nc)
+            assert np.all(np.abs(got - want) <= 1e-10 * scale)
+    want_abs = np.add.reduceat(ref.sabs, starts, axis=1)
+    assert np.all(fast.sabs >= want_abs - 1e-10 * scale)
+    assert fast.s2 is None if not moments3 else fast.s2 is not None
+    rng = np.random.default_rng(case["seed"])
+    rows = rng.integers(0, d, 7)
+    blocks = rng.integers(0, nc, 7)  # repeated and distinct blocks, any order
+    idx = fine_blocks(blocks, group, nb)
+    assert np.all(idx == np.minimum(blocks[:, None] * group + np.arange(group), nb - 1))
+    for got in (fast.fine(rows, blocks), generic.fine(rows, blocks)):
+        assert len(got) == 4 and (got[2] is None) == (not moments3)
+        for name, x in zip(names, got, strict=True):
+            if x is None:
+                continue
+            want = getattr(ref, name)[rows[:, None], idx]
+            tol = 1e-10 * scale[rows][:, :1]
+            if name == "sabs":
+                assert np.all(x >= want - tol)
+            else:
+                assert np.all(np.abs(x - want) <= tol), np.abs(x - want).max()
+
+
+def _near_ties(rng, n):
+    """Values that differ only in their last bits (and exact ties, both zeros, infinities)."""
+    base = rng.choice([0.0, -0.0, 1.0, -3.5, 1e300, -1e-300, np.inf, -np.inf], n)
+    ulps = rng.integers(-40, 40, n).astype(float)
+    return np.where(np.isfinite(base), base + ulps * np.spacing(base), base)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([1, 2, 17, 300, 4099]),
+       st.sampled_from(["uniform", "normal", "near_ties", "ties", "wide", "nan"]))
+def test_sort_order_is_a_sorting_permutation(seed, n, kind):
+    """``sort_order`` (integer keys with the index in their last bits, then the runs of values
+    equal but for those bits sorted by value) sorts like ``np.argsort``: a permutation with
+    the values non-decreasing, the sorted values written into ``out``; with NaN, exactly
+    ``np.argsort``."""
+    rng = np.random.default_rng(seed)
+    v = {
+        "uniform": lambda: rng.uniform(0.0, 1.0, n),
+        "normal": lambda: rng.normal(size=n),
+        "near_ties": lambda: _near_ties(rng, n),
+        "ties": lambda: rng.integers(-3, 3, n) * 0.5,
+        "wide": lambda: rng.normal(size=n) * 10.0 ** rng.integers(-300, 300, n),
+        "nan": lambda: np.where(rng.random(n) < 0.2, np.nan, rng.normal(size=n)),
+    }[kind]()
+    if kind == "nan":
+        v[rng.integers(0, n)] = -np.nan  # sign bit set: its key sorts first
+    before = v.copy()
+    out = np.empty(n)
+    order = sort_order(v, out=out)
+    np.testing.assert_array_equal(v, before)  # input unchanged
+    np.testing.assert_array_equal(np.sort(order), np.arange(n))
+    np.testing.assert_array_equal(out, v[order])
+    np.testing.assert_array_equal(out, np.sort(v))  # NaN last, as np.sort
+    if kind == "nan":
+        np.testing.assert_array_equal(order, np.argsort(v))
+    np.testing.assert_array_equal(sort_order(v), order)

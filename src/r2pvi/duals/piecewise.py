@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._scratch import buffer
-from .operators import BLOCK, ExpectationOperator
+from .operators import BLOCK, ExpectationOperator, fine_blocks
 
 __all__ = [
     "chi2_objective", "segments_max", "blockwise_max", "dense_max", "tv_ball_max", "BlockScan",
@@ -204,16 +204,16 @@ class BlockScan(_Level):
 
     def __init__(self, E: ExpectationOperator, v, extra=(), second_moment: bool = True,
                  group: int = 1):
-        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2)
         self.group = int(group)
+        sb = E.sorted_blocks(v, extra, moments=3 if second_moment else 2, group=self.group)
         self.alphas = sb.alphas
         self._al3 = sb.alphas.reshape(-1, BLOCK)
         self.top = float(sb.alphas[-1])
-        # the fine blocks (16 breakpoints each)
-        self._fine = (sb.s0, sb.s1, sb.s2, sb.sabs)
+        # the fine blocks (16 breakpoints each): their sums on demand (sub_blocks)
+        self._fine = sb.fine
         self._fine_start = self._al3[:, 0]
         self._fine_end = np.append(self._fine_start[1:], self.top)
-        s0, s1, s2, sabs = (_group_sums(x, self.group) for x in self._fine)
+        s0, s1, s2, sabs = sb.s0, sb.s1, sb.s2, sb.sabs  # blocks of 16 group
         # Sums over the blocks before each block (exclusive running sums, one pass each).
         self._p0, self._p1 = (_exclusive_cumsum(s, key) for s, key in ((s0, "p0"), (s1, "p1")))
         self._p2 = _exclusive_cumsum(s2, "p2") if second_moment else None
@@ -246,18 +246,12 @@ class BlockScan(_Level):
         running sums plus the fine block sums before them inside the block)."""
         g = self.group
         nb = self._fine_start.size
-        fine = blocks[:, None] * g + np.arange(g)
         sub = _SubBlocks()
-        sub.valid = fine < nb
-        sub.blocks = np.minimum(fine, nb - 1)
-        r = rows[:, None]
-        s0f, s1f, s2f, sabsf = self._fine
-
-        def take(x):  # entries past the end repeat the last block: masked by ``valid``
-            return x[r, sub.blocks]
-
-        s0, s1 = take(s0f), take(s1f)
-        sub._s0, sub._sabs = s0, take(sabsf)
+        sub.valid = (blocks[:, None] * g + np.arange(g)) < nb
+        # entries past the end repeat the last block: masked by ``valid``
+        sub.blocks = fine_blocks(blocks, g, nb)
+        s0, s1, s2, sub._sabs = self._fine(rows, blocks)
+        sub._s0 = s0
         sub.p0 = self._p0[rows, blocks][:, None] + _exclusive_cumsum(s0, None)
         sub.p1 = self._p1[rows, blocks][:, None] + _exclusive_cumsum(s1, None)
         sub._tail = self._total[rows] - sub.p0
@@ -266,7 +260,7 @@ class BlockScan(_Level):
         sub.e1_start = sub.p1 + sub._tail * sub.start
         sub.p2 = sub.e2_start = None
         if self._p2 is not None:
-            sub.p2 = self._p2[rows, blocks][:, None] + _exclusive_cumsum(take(s2f), None)
+            sub.p2 = self._p2[rows, blocks][:, None] + _exclusive_cumsum(s2, None)
             sub.e2_start = sub.p2 + sub._tail * sub.start**2
         return sub
 
@@ -298,23 +292,6 @@ class BlockScan(_Level):
 
 # Fine blocks (of 16 breakpoints) per block of the first level of the duals' branch and bound.
 GROUP = 4
-
-
-def _group_sums(s, group):
-    """Sums of ``s (r, nb)`` over consecutive groups of ``group`` columns (the last group may
-    be shorter): ``(r, ceil(nb / group))``."""
-    if group == 1 or s is None:
-        return s
-    r, nb = s.shape
-    full = nb // group * group
-    out = np.empty((r, -(-nb // group)))
-    head = out[:, :full // group]
-    np.add(s[:, 0:full:group], s[:, 1:full:group], out=head)
-    for k in range(2, group):
-        head += s[:, k:full:group]
-    if full < nb:
-        out[:, -1] = s[:, full:].sum(axis=1)
-    return out
 
 
 def _exclusive_cumsum(s, key):
