@@ -126,15 +126,15 @@ class ExpectationOperator:
         d, p = weights.shape
         w3 = weights.reshape(d, p // BLOCK, BLOCK)
         powers = _block_powers(alphas, moments)  # (nb, moments, 16): 1, alpha, alpha^2
-        sums = np.einsum("dbk,bjk->jdb", w3, powers)
-        fine = (sums[0], sums[1], sums[2] if moments == 3 else None, np.abs(w3).sum(axis=2))
+        sums = np.einsum("dbk,bjk->jdb", w3, powers)  # (moments, d, nb)
+        sabs = np.abs(w3).sum(axis=2)
 
         def fine_sums(rows, blocks):
-            idx = fine_blocks(blocks, group, w3.shape[1])
-            return tuple(None if x is None else x[rows[:, None], idx] for x in fine)
+            r, idx = rows[:, None], fine_blocks(blocks, group, w3.shape[1])
+            return sums[:, r, idx], sabs[r, idx]
 
-        coarse = (group_sums(x, group, axis=1) for x in fine)
-        return SortedBlocks(alphas, m, group, *coarse, fine_sums,
+        return SortedBlocks(alphas, m, group, group_sums(sums, group, axis=2),
+                            group_sums(sabs, group, axis=1), fine_sums,
                             lambda rows, blk: w3[rows, blk])
 
     def truncation_cumulants(self, v: np.ndarray, breakpoints_extra=()) -> TruncationCumulants:
@@ -269,21 +269,24 @@ class SortedBlocks:
     """Sorted breakpoints and per-block weight sums (see :meth:`ExpectationOperator.sorted_blocks`).
 
     Attributes: ``alphas (p,)``, ``m`` (real breakpoints), ``group`` (blocks of 16 per block of
-    the first level), ``s0, s1, s2, sabs (d, nc)`` the sums of ``M``, ``M v``, ``M v^2`` and an
-    upper bound on the sums of ``|M|`` over the blocks of ``16 group`` sorted points;
-    ``fine(rows, blocks) -> (P, group)`` each, the same four sums (``s2`` None without the
-    second moment) of factor ``rows[p]`` on the blocks of 16 inside block ``blocks[p]`` (of
-    ``16 group``; past the end: the last block of 16, see :func:`fine_blocks`); and
-    ``pairs(rows, blocks) -> (P, 16)`` the exact weights of factor ``rows[p]`` on block of 16
-    ``blocks[p]``.
+    the first level), ``sums (moments, d, nc)``: the sums ``s0, s1`` (and ``s2``) of ``M``,
+    ``M v`` (and ``M v^2``) over the blocks of ``16 group`` sorted points, ``sabs (d, nc)`` an
+    upper bound on their sums of ``|M|``; ``fine(rows, blocks)``, the same ``(sums (moments, P,
+    group), sabs (P, group))`` of factor ``rows[p]`` on the blocks of 16 inside block
+    ``blocks[p]`` (of ``16 group``; past the end: the last block of 16, see
+    :func:`fine_blocks`); and ``pairs(rows, blocks) -> (P, 16)`` the exact weights of factor
+    ``rows[p]`` on block of 16 ``blocks[p]``.
     """
 
-    __slots__ = ("alphas", "m", "group", "s0", "s1", "s2", "sabs", "fine", "pairs")
+    __slots__ = ("alphas", "m", "group", "sums", "sabs", "fine", "pairs")
 
-    def __init__(self, alphas, m, group, s0, s1, s2, sabs, fine, pairs):
+    def __init__(self, alphas, m, group, sums, sabs, fine, pairs):
         self.alphas, self.m, self.group = alphas, m, group
-        self.s0, self.s1, self.s2, self.sabs = s0, s1, s2, sabs
-        self.fine, self.pairs = fine, pairs
+        self.sums, self.sabs, self.fine, self.pairs = sums, sabs, fine, pairs
+
+    s0 = property(lambda self: self.sums[0])
+    s1 = property(lambda self: self.sums[1])
+    s2 = property(lambda self: self.sums[2] if len(self.sums) > 2 else None)
 
 
 def fine_blocks(blocks: np.ndarray, group: int, n_blocks: int) -> np.ndarray:
@@ -297,7 +300,8 @@ def group_sums(x: np.ndarray | None, group: int, axis: int = 0) -> np.ndarray | 
     group may be shorter; left to right, ``x[0] + x[1] + ...``)."""
     if group == 1 or x is None:
         return x
-    x = np.moveaxis(x, axis, 0)
+    if axis != 0:
+        return np.moveaxis(group_sums(np.moveaxis(x, axis, 0), group), 0, axis)
     n = x.shape[0]
     full = n // group * group
     out = np.empty((-(-n // group),) + x.shape[1:])
@@ -307,7 +311,7 @@ def group_sums(x: np.ndarray | None, group: int, axis: int = 0) -> np.ndarray | 
         head += x[k:full:group]
     if full < n:
         out[-1] = x[full:].sum(axis=0)
-    return np.moveaxis(out, 0, axis)
+    return out
 
 
 class TruncationCumulants:
@@ -909,27 +913,24 @@ class RidgeExpectation(ExpectationOperator):
         sabs = abs_inv @ (csum[:, 0] if nonneg else group_sums(fabs, group)).T
 
         def fine(rows, blocks):
-            # Lambda^{-1} on the feature sums of the distinct blocks asked for only (U of
-            # them; a mask and its running count instead of np.unique's sort).
+            # Lambda^{-1} (and |Lambda^{-1}|) on the feature sums of the distinct blocks asked
+            # for only (U of them; a mask and its running count instead of np.unique's sort).
             seen = np.zeros(csum.shape[0], dtype=bool)
             seen[blocks] = True
             ub = np.flatnonzero(seen)
             inv = (np.cumsum(seen) - 1)[blocks]
             idx = fine_blocks(ub, group, nb).ravel()  # (U group,)
-            mapped = np.matmul(gram_inv, fsum[idx].transpose(1, 2, 0))  # (moments, d, U g)
-            shape = (d, ub.size, group)
-            r = rows[:, None]
-            out = [x.reshape(shape)[r, inv[:, None], np.arange(group)] for x in mapped]
-            if moments < 3:
-                out.append(None)
-            out.append((abs_inv @ fabs[idx].T).reshape(shape)[r, inv[:, None], np.arange(group)])
-            return tuple(out)
+            mapped = np.empty((moments + 1, d, idx.size))
+            np.matmul(gram_inv, fsum[idx].transpose(1, 2, 0), out=mapped[:moments])
+            np.matmul(abs_inv, fabs[idx].T, out=mapped[moments])
+            out = mapped.reshape(moments + 1, d, ub.size, group)[
+                :, rows[:, None], inv[:, None], np.arange(group)]  # (moments + 1, P, group)
+            return out[:moments], out[moments]
 
         def pairs(rows, blocks):
             return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]  # (P, 16)
 
-        s2 = sums[2] if moments == 3 else None
-        return SortedBlocks(alphas, m, group, sums[0], sums[1], s2, sabs, fine, pairs)
+        return SortedBlocks(alphas, m, group, sums, sabs, fine, pairs)
 
     def inverse_diagonal(self) -> np.ndarray:
         """``diag(Lambda^{-1})`` without forming the inverse (see :class:`GramFactor`)."""

@@ -214,9 +214,11 @@ class BlockScan(_Level):
         self._fine_start = self._al3[:, 0]
         self._fine_end = np.append(self._fine_start[1:], self.top)
         s0, s1, s2, sabs = sb.s0, sb.s1, sb.s2, sb.sabs  # blocks of 16 group
-        # Sums over the blocks before each block (exclusive running sums, one pass each).
-        self._p0, self._p1 = (_exclusive_cumsum(s, key) for s, key in ((s0, "p0"), (s1, "p1")))
-        self._p2 = _exclusive_cumsum(s2, "p2") if second_moment else None
+        # Sums over the blocks before each block (exclusive running sums of all the moments
+        # in one pass).
+        self._p = _exclusive_cumsum(sb.sums, "p")
+        self._p0, self._p1 = self._p[0], self._p[1]
+        self._p2 = self._p[2] if second_moment else None
         self._total = self._p0[:, -1:] + s0[:, -1:]
         # weight of the points at or after a block start
         self._tail = np.subtract(self._total, self._p0, out=buffer("scan.tail", s0.shape))
@@ -250,17 +252,18 @@ class BlockScan(_Level):
         sub.valid = (blocks[:, None] * g + np.arange(g)) < nb
         # entries past the end repeat the last block: masked by ``valid``
         sub.blocks = fine_blocks(blocks, g, nb)
-        s0, s1, s2, sub._sabs = self._fine(rows, blocks)
-        sub._s0 = s0
-        sub.p0 = self._p0[rows, blocks][:, None] + _exclusive_cumsum(s0, None)
-        sub.p1 = self._p1[rows, blocks][:, None] + _exclusive_cumsum(s1, None)
+        sums, sub._sabs = self._fine(rows, blocks)  # (moments, P, group), (P, group)
+        sub._s0 = sums[0]
+        p = _exclusive_cumsum(sums, None)
+        p += self._p[:, rows, blocks][:, :, None]
+        sub.p0, sub.p1 = p[0], p[1]
         sub._tail = self._total[rows] - sub.p0
         sub.start = np.where(sub.valid, self._fine_start[sub.blocks], self.top)
         sub.end = np.where(sub.valid, self._fine_end[sub.blocks], self.top)
         sub.e1_start = sub.p1 + sub._tail * sub.start
         sub.p2 = sub.e2_start = None
         if self._p2 is not None:
-            sub.p2 = self._p2[rows, blocks][:, None] + _exclusive_cumsum(s2, None)
+            sub.p2 = p[2]
             sub.e2_start = sub.p2 + sub._tail * sub.start**2
         return sub
 
@@ -295,10 +298,11 @@ GROUP = 4
 
 
 def _exclusive_cumsum(s, key):
-    """``p[:, j] = sum_{k < j} s[:, k]`` (into a reused work buffer when ``key`` is given)."""
+    """``p[..., j] = sum_{k < j} s[..., k]`` (into a reused work buffer when ``key`` is
+    given)."""
     p = np.empty(s.shape) if key is None else buffer("scan." + key, s.shape)
-    p[:, 0] = 0.0
-    np.cumsum(s[:, :-1], axis=1, out=p[:, 1:])
+    p[..., 0] = 0.0
+    np.cumsum(s[..., :-1], axis=-1, out=p[..., 1:])
     return p
 
 
