@@ -30,7 +30,7 @@ from r2pvi._threads import limit_blas
 from r2pvi.algorithms.drpvi import TVBallRule
 from r2pvi.algorithms.r2pvi import Chi2Rule
 from r2pvi.duals import operators
-from r2pvi.duals.operators import RidgeExpectation, SortedBlocks
+from r2pvi.duals.operators import RidgeExpectation, SortedBlocks, fine_blocks, group_sums
 
 _SORT = operators.sort_breakpoints
 _BLOCKS = RidgeExpectation.sorted_blocks
@@ -59,27 +59,32 @@ class Given:
                                        for x in _SORT(v, extra))
             return given.cache[k]
 
-        def sorted_blocks(self, v, breakpoints_extra=(), moments=3):
+        def sorted_blocks(self, v, breakpoints_extra=(), moments=3, group=1):
             if given.part != "blocks":
-                return _BLOCKS(self, v, breakpoints_extra, moments)
+                return _BLOCKS(self, v, breakpoints_extra, moments, group)
             self.phi  # noqa: B018 - the Gram matrix, as the full fit forms it here
             k = ("blocks", _key(v), tuple(breakpoints_extra), moments)
             if k not in given.cache:
+                # the sums of every block of 16 (group 1), copied: the buffers are reused
                 sb = _BLOCKS(self, v, breakpoints_extra, moments)
-                arrays = [None if x is None else np.copy(x)
-                          for x in (sb.alphas, sb.s0, sb.s1, sb.s2, sb.sabs)]
+                arrays = [np.copy(x) for x in (sb.alphas, sb.sums, sb.sabs)]
                 # the exact pair weights as the operator forms them, from a copy of the
                 # sorted rows (its buffer is reused by the next step)
                 rows = self._sorted_features(v, breakpoints_extra)[1]
                 x3 = rows.reshape(-1, 16, self.n_dims).copy()
                 gram_inv = self.chol_inverse.T @ self.chol_inverse
                 given.cache[k] = (arrays, sb.m, x3, gram_inv)
-            (alphas, s0, s1, s2, sabs), m, x3, gram_inv = given.cache[k]
+            (alphas, sums, sabs), m, x3, gram_inv = given.cache[k]
+
+            def fine(rows, blocks):
+                r, idx = rows[:, None], fine_blocks(blocks, group, sabs.shape[1])
+                return sums[:, r, idx], sabs[r, idx]
 
             def pairs(rows, blocks):
                 return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]
 
-            return SortedBlocks(alphas, m, s0, s1, s2, sabs, pairs)
+            return SortedBlocks(alphas, m, group, group_sums(sums, group, axis=2),
+                                group_sums(sabs, group, axis=1), fine, pairs)
 
         def rule_call(rule_cls):
             def call(self, E, v, ctx):

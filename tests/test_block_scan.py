@@ -21,6 +21,7 @@ from r2pvi.duals.operators import (
 from r2pvi.duals.piecewise import (
     BlockScan,
     _chi2_block_bounds,
+    _running_sums,
     blockwise_max,
     chi2_objective,
     dense_max,
@@ -275,3 +276,30 @@ def test_sort_order_is_a_sorting_permutation(seed, n, kind):
     if kind == "nan":
         np.testing.assert_array_equal(order, np.argsort(v))
     np.testing.assert_array_equal(sort_order(v), order)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 20), st.booleans(),
+       st.sampled_from(["finite", "inf", "nan", "huge"]))
+def test_running_sums_equal_cumsum(seed, n, exclusive, kind):
+    """``_running_sums`` (a product with a triangle of ones up to 16 entries) equals
+    ``np.cumsum`` (shifted by one if ``exclusive``), also where an entry is infinite or NaN
+    (there the product would give NaN for the earlier sums: it falls back)."""
+    rng = np.random.default_rng(seed)
+    s = rng.normal(size=(3, 5, n)) * 10.0 ** rng.integers(-5, 5, (3, 5, n))
+    if kind != "finite":
+        s[rng.integers(0, 3), rng.integers(0, 5), rng.integers(0, n)] = {
+            "inf": np.inf, "nan": np.nan, "huge": 1.7e308}[kind]
+    with np.errstate(over="ignore", invalid="ignore"):
+        if kind == "huge":
+            s[..., 0] = 1.7e308  # the sums overflow
+        got = _running_sums(s, np.empty_like(s), exclusive)
+        want = np.cumsum(s, axis=-1)
+        scale = np.abs(s).cumsum(axis=-1)
+        if exclusive:
+            want = np.concatenate([np.zeros((3, 5, 1)), want[..., :-1]], axis=-1)
+            scale = np.concatenate([np.zeros((3, 5, 1)), scale[..., :-1]], axis=-1)
+        finite = np.isfinite(want)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        np.testing.assert_array_equal(got[~finite], want[~finite])
+        assert np.all(np.abs(got - want)[finite] <= 1e-14 * scale[finite])

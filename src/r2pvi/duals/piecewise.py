@@ -283,27 +283,62 @@ class BlockScan(_Level):
             p0, p1, p2 = prefix
         wb = self._pairs(rows, blocks)  # (P, 16) exact weights
         ab = self._al3[blocks]
-        a = p1[:, None] + np.cumsum(wb * ab, axis=1)
-        b = self._total[rows] - (p0[:, None] + np.cumsum(wb, axis=1))
-        last = lambda x: np.concatenate([x, x[:, -1:]], axis=1)  # noqa: E731
+        moments = 2 if p2 is None else 3
+        # w, w alpha (and w alpha^2) stacked: their running sums in one product with a
+        # triangle of ones (np.cumsum is slower on rows of 16)
+        terms = np.empty((moments, wb.shape[0], BLOCK))
+        terms[0] = wb
+        np.multiply(wb, ab, out=terms[1])
+        if p2 is not None:
+            np.multiply(terms[1], ab, out=terms[2])
+        coef = np.empty((moments, wb.shape[0], BLOCK + 1))
+        _running_sums(terms, coef[:, :, :BLOCK], exclusive=False)
+        coef[:, :, BLOCK] = coef[:, :, BLOCK - 1]
+        b = coef[0]
+        b += p0[:, None]
+        np.subtract(self._total[rows], b, out=b)
+        a = coef[1]
+        a += p1[:, None]
+        c = None
+        if p2 is not None:
+            c = coef[2]
+            c += p2[:, None]
         al = np.concatenate([ab, self._fine_end[blocks, None]], axis=1)
-        if p2 is None:
-            return last(a), last(b), None, al
-        c = p2[:, None] + np.cumsum(wb * ab * ab, axis=1)
-        return last(a), last(b), last(c), al
+        return a, b, c, al
 
 
 # Fine blocks (of 16 breakpoints) per block of the first level of the duals' branch and bound.
 GROUP = 4
 
 
+# Triangles of ones: ``x @ _INCLUSIVE[n]`` and ``x @ _EXCLUSIVE[n]`` are the running sums of
+# the rows of ``x (r, n)``, with and without the current entry (small n: one product is faster
+# than np.cumsum on many short rows).
+_INCLUSIVE = {n: np.triu(np.ones((n, n))) for n in range(1, BLOCK + 1)}
+_EXCLUSIVE = {n: np.triu(np.ones((n, n)), 1) for n in range(1, BLOCK + 1)}
+
+
+def _running_sums(s, out, exclusive):
+    """Running sums of ``s`` along its last axis into ``out``: ``sum_{k <= j}`` (``sum_{k <
+    j}`` if ``exclusive``). Up to 16 entries by one product with a triangle of ones, unless
+    that meets an infinite entry (``inf * 0``: NaN where np.cumsum is exact)."""
+    n = s.shape[-1]
+    if n <= BLOCK:
+        np.matmul(s, (_EXCLUSIVE if exclusive else _INCLUSIVE)[n], out=out)
+        if np.isfinite(out).all():
+            return out
+    if not exclusive:
+        return np.cumsum(s, axis=-1, out=out)
+    out[..., 0] = 0.0
+    np.cumsum(s[..., :-1], axis=-1, out=out[..., 1:])
+    return out
+
+
 def _exclusive_cumsum(s, key):
     """``p[..., j] = sum_{k < j} s[..., k]`` (into a reused work buffer when ``key`` is
     given)."""
     p = np.empty(s.shape) if key is None else buffer("scan." + key, s.shape)
-    p[..., 0] = 0.0
-    np.cumsum(s[..., :-1], axis=-1, out=p[..., 1:])
-    return p
+    return _running_sums(s, p, exclusive=True)
 
 
 def _refine(scan, rows, blocks, best, start_value, bound):
