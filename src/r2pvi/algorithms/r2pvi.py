@@ -5,8 +5,6 @@ from __future__ import annotations
 import copy
 import math
 
-import numpy as np
-
 from .._validation import check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
 from ..duals.ranges import project_onto_range, value_extent, value_range
@@ -72,9 +70,10 @@ class Chi2Rule(StepRule):
         self.lam = lam
 
     def __call__(self, E, v, ctx):
-        lo, hi = _step_range(v, ctx)
-        top = hi - float(np.min(v))
-        w = chi2_regularized(E, v, self.lam, (0.0, top), (0.0, top * top))
+        ext = value_extent(v)  # once: the step's range, the centering and the dual's range
+        lo, hi = _step_range(v, ctx, extent=ext)
+        top = hi - ext[0]
+        w = chi2_regularized(E, v, self.lam, (0.0, top), (0.0, top * top), extent=ext)
         return project_onto_range(w, lo, hi)
 
 

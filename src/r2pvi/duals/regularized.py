@@ -185,6 +185,7 @@ def chi2_regularized(
     second_clip: tuple[float, float] | None = None,
     method: str = "auto",
     center: bool = True,
+    extent: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """chi^2: ``max_alpha E_i[V]_alpha + (E_i[V]_alpha)^2/(4 lam) - E_i[V^2]_alpha/(4 lam)``.
 
@@ -207,6 +208,8 @@ def chi2_regularized(
     support of factor i and ``p_i`` its mass (the point mass at ``m_i`` costs
     ``lam chi^2 = lam (1/p_i - 1)``): for ``lam`` below the resolution of the values (down
     to 1e-300) that interval is the answer. ``center=False`` is the literal computation.
+    ``extent``: ``(min v, max v)`` when the caller has them
+    (:func:`~r2pvi.duals.ranges.value_extent`), to save passes over ``v``.
 
     The objective is piecewise quadratic in ``alpha``; every breakpoint (sorted value), every
     point where a clip becomes active and the stationary point of every piece are candidates
@@ -241,9 +244,12 @@ def chi2_regularized(
             sub = E if rows.size == E.n_dims else FactorExpectation(mu[rows])
             w[rows] = g + _chi2_core(sub, v - g, lam, None, None, method)
         return _within_exact_chi2_bounds(E, v, lam, w)
-    c = float(np.min(v)) if center else 0.0
+    lo_v, hi_v = value_extent(v) if extent is None else extent
+    c = lo_v if center else 0.0
     totals = {}
-    w = _chi2_core(E, v - c if center else v, lam, mean_clip, second_clip, method, totals)
+    # (v - c) rounds monotonically: its extent is the extent of v, shifted and rounded
+    w = _chi2_core(E, v - c if center else v, lam, mean_clip, second_clip, method, totals,
+                   (lo_v - c, hi_v - c))
     if center and c != 0.0:
         if E.nonnegative:
             w = w + c
@@ -254,10 +260,11 @@ def chi2_regularized(
     return w
 
 
-def _chi2_core(E, u, lam, mean_clip, second_clip, method, totals=None):
+def _chi2_core(E, u, lam, mean_clip, second_clip, method, totals=None, extent=None):
     """The exact maximum over alpha for values ``u`` (see :func:`chi2_regularized`);
-    ``totals`` as in :func:`~r2pvi.duals.piecewise.blockwise_max` (blockwise only)."""
-    lo_v, hi_v = float(np.min(u)), float(np.max(u))
+    ``totals`` as in :func:`~r2pvi.duals.piecewise.blockwise_max` (blockwise only);
+    ``extent``: ``(min u, max u)`` if known."""
+    lo_v, hi_v = value_extent(u) if extent is None else extent
     # E([V]^2_alpha) = C + B alpha^2 is monotone on a segment that does not contain alpha = 0.
     extra = (0.0,) if lo_v < 0.0 < hi_v else ()
     # For lam far below the values' resolution the quadratic term overflows: +-inf, and the
