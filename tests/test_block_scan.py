@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from r2pvi.duals import RidgeExpectation, cholesky_gram
+from r2pvi.duals import RidgeExpectation, chi2_regularized, cholesky_gram
 from r2pvi.duals.operators import (
     BLOCK,
     ExpectationOperator,
@@ -28,6 +28,7 @@ from r2pvi.duals.piecewise import (
     segments_max,
     tv_ball_max,
 )
+from r2pvi.duals.ranges import value_extent
 
 
 def ridge_case(seed, n, d, *, signed, weighted, zero_mass, scale, negative, ties):
@@ -303,3 +304,18 @@ def test_running_sums_equal_cumsum(seed, n, exclusive, kind):
         np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
         np.testing.assert_array_equal(got[~finite], want[~finite])
         assert np.all(np.abs(got - want)[finite] <= 1e-14 * scale[finite])
+
+
+@settings(max_examples=40, deadline=None)
+@given(cases, st.booleans(), st.booleans())
+def test_chi2_with_the_extent_given_is_bitwise_the_same(case, clipped, center):
+    """``chi2_regularized(..., extent=value_extent(v))`` (the rule's min/max handed over, the
+    centered values' extent derived from it; uncentered, it decides the extra breakpoint 0)
+    returns exactly what it computes by itself."""
+    E, v = ridge_case(**case)
+    top = float(np.abs(v).max()) or 1.0
+    clips = ((0.0, top), (0.0, top**2)) if clipped else (None, None)
+    with np.errstate(over="ignore", invalid="ignore"):
+        alone = chi2_regularized(E, v, 0.3, *clips, center=center).copy()
+        given_ = chi2_regularized(E, v, 0.3, *clips, center=center, extent=value_extent(v))
+    np.testing.assert_array_equal(given_, alone)
