@@ -93,12 +93,14 @@ def estimator(name):
 
 
 # ----------------------------------------------------------------------------- writing
-def write_features(path: Path, K: int, chunk: int = 20_000, seed: int = 0):
+def write_features(path: Path, K: int, chunk: int = 20_000, seed: int = 0,
+                   dtype: str = "float32"):
+    """The ``disk`` data; the same (float32-drawn) numbers whatever the storage ``dtype``."""
     from r2pvi import DatasetWriter
 
     rng = np.random.default_rng(seed)
     th = theta()
-    with DatasetWriter(path, horizon=H, n_features=D, n_actions=A, dtype="float32",
+    with DatasetWriter(path, horizon=H, n_features=D, n_actions=A, dtype=dtype,
                        overwrite=True) as w:
         for s in range(0, K, chunk):
             k = min(chunk, K - s)
@@ -232,17 +234,30 @@ def run_child(**task) -> dict:
 
 
 # ----------------------------------------------------------------------------- main
+def features_path(root: Path, K: int, dtype: str, keep: bool) -> Path:
+    """``features-K{K}-{dtype}``; with ``keep``, float32 data written under the older name
+    ``features-K{K}`` (before ``--dtype``) is reused when the new name does not exist."""
+    path = root / f"features-K{K}-{dtype}"
+    legacy = root / f"features-K{K}"
+    if (keep and dtype == "float32" and not (path / "manifest.json").exists()
+            and (legacy / "manifest.json").exists()
+            and json.loads((legacy / "manifest.json").read_text()).get("dtype") == dtype):
+        return legacy
+    return path
+
+
 def disk(args):
-    path = Path(args.dir) / f"features-K{args.K}"
+    path = features_path(Path(args.dir), args.K, args.dtype, args.keep)
     if not (args.keep and (path / "manifest.json").exists()):
         from threadpoolctl import threadpool_limits
 
         t0 = time.perf_counter()
         with threadpool_limits(BLAS_THREADS):  # the writer forms each step's Gram matrix
-            write_features(path, args.K)
+            write_features(path, args.K, dtype=args.dtype)
         print(f"wrote {path} in {time.perf_counter() - t0:.1f} s")
     size = dir_size(path)
-    print(f"K = {args.K}, d = {D}, H = {H}, A = {A}, float32 on disk: {size / 2**30:.2f} GiB")
+    print(f"K = {args.K}, d = {D}, H = {H}, A = {A}, {args.dtype} on disk: "
+          f"{size / 2**30:.2f} GiB ({path})")
     run_child(what="read", path=str(path))  # warm the page cache
     read = best_of(args.repeats, what="read", path=str(path))
     print(f"{'task':<12} {'seconds':>8} {'x read':>7} {'CPU s':>7} {'x read':>7} "
@@ -346,6 +361,9 @@ def main(argv=None):
     d.add_argument("--repeats", type=int, default=1,
                    help="fresh processes per task; the least CPU time is reported (and the "
                    "least wall time)")
+    d.add_argument("--dtype", choices=["float32", "float64"], default="float32",
+                   help="storage type of the features (float64: 2x the bytes; the fit reads "
+                   "the mapped pages with no copy)")
     s = sub.add_parser("scaling")
     s.add_argument("--Ks", nargs="*", default=["1e5", "1e6", "1e7"])
     b = sub.add_parser("behaviour")

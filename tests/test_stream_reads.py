@@ -109,3 +109,130 @@ def test_next_state_values_by_one_product_equal_the_definition(penalty, beta, A,
     np.testing.assert_array_equal(out, truth)
     linear = qmax.linear(not signed)
     assert (linear is not None) == (beta == 0.0 or (penalty == "l1" and not signed))
+
+
+# ----------------------------------------------------------------------------- float64 files
+@pytest.fixture(scope="module")
+def data64(data, tmp_path_factory):
+    mem, _ = data
+    return mem, mem.save(tmp_path_factory.mktemp("reads64") / "ds", dtype="float64")
+
+
+def _mapping(rows):
+    """The ``mmap`` an array is a view of (through NumPy's memoryview), else None."""
+    base = rows
+    while base is not None and not isinstance(base, memoryview):
+        base = base.base
+    return None if base is None else base.obj
+
+
+@pytest.mark.parametrize("window, chunk", [(1 << 25, 4096), (4096, 64), (100, 7)])
+def test_float64_files_are_read_as_views_of_the_map(data64, window, chunk, monkeypatch):
+    """Native float64 files: every chunk is a read-only view of the mapped window (no copy),
+    bitwise what pread reads, in file order."""
+    _, path = data64
+    monkeypatch.setattr(storage._reads, "MAP_WINDOW", window)
+    for name in ("phi.npy", "next_phi.npy"):
+        f = FileField(path / name)
+        assert f.dtype == np.float64
+        H, K = f.shape[:2]
+        shape = (min(chunk, K),) + f.shape[2:]
+        for h in (0, H - 1):
+            seen = 0
+            for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
+                assert s == seen and rows.shape == (e - s,) + f.shape[2:]
+                assert rows.dtype == np.float64 and rows.flags.c_contiguous
+                assert not rows.flags.writeable and not rows.flags.owndata
+                assert isinstance(_mapping(rows), mmap.mmap)
+                assert rows.tobytes() == f.read(h, s, e).tobytes()
+                seen = e
+            assert seen == K
+        f.close()
+
+
+def test_a_kept_float64_chunk_stays_valid_and_its_map_goes_with_it(data64, monkeypatch):
+    """A chunk kept past its iteration (against the contract) never points at unmapped memory:
+    closing its window is refused (BufferError, caught), the window stays mapped while a view
+    lives and is unmapped when the last view goes (the mmap is deallocated). A pass keeps at
+    most two windows alive (the caller's loop variable holds the previous chunk while the next
+    window is mapped), so the resident memory stays bounded."""
+    import gc
+    import weakref
+
+    _, path = data64
+    monkeypatch.setattr(storage._reads, "MAP_WINDOW", 4096)
+    f = FileField(path / "next_phi.npy")
+    K = f.shape[1]
+    shape = (64,) + f.shape[2:]
+
+    def alive(refs):
+        return [r() for r in refs if r() is not None and not r().closed]
+
+    refs, kept = [], None
+    for s, e, rows in storage._prefetched(f, 1, K, 64, shape):  # run to the end
+        mm = _mapping(rows)
+        if not refs or refs[-1]() is not mm:
+            refs.append(weakref.ref(mm))
+        del mm
+        assert len(alive(refs)) <= 2 + (kept is not None)
+        if s == 64:
+            kept = (s, e, rows)
+    assert len(refs) > 2
+    del rows
+    s, e, rows = kept
+    del kept
+    mine = _mapping(rows)
+    assert alive(refs) == [mine]  # every other window is unmapped
+    np.testing.assert_array_equal(rows, f.read(1, s, e))
+    assert storage._reads._unmap(mine) is False and not mine.closed  # a view is alive
+    # abandoned half-way while a chunk is held: no BufferError from the generator's close
+    gen = storage._prefetched(f, 1, K, 64, shape)
+    s2, e2, held = next(gen)
+    gen.close()
+    np.testing.assert_array_equal(held, f.read(1, s2, e2))
+    assert not _mapping(held).closed
+    gone = weakref.ref(_mapping(held))
+    del held
+    assert gone() is None
+    # the last view released: nothing exports the map any more
+    del rows
+    gc.collect()
+    assert storage._reads._unmap(mine) is True and mine.closed
+    f.close()
+
+
+def test_float64_fits_without_a_copy_equal_the_copying_reads(data64, monkeypatch):
+    """The zero-copy path does the arithmetic of the copying one (pread into a float64
+    buffer): the same weights bitwise; and the in-memory fit's to 1e-10."""
+    mem, path = data64
+    direct = fits(OfflineDataset.open(path))
+
+    def refuse(*a, **k):
+        raise OSError("no mmap here")
+
+    with monkeypatch.context() as m:
+        m.setattr(mmap, "mmap", refuse)
+        copied = fits(OfflineDataset.open(path))
+    for a, b, c in zip(direct, copied, fits(mem), strict=True):
+        assert a.tobytes() == b.tobytes()
+        np.testing.assert_allclose(a, c, rtol=0, atol=1e-10)
+
+
+def test_unaligned_float64_files_are_copied(tmp_path):
+    """A float64 .npy whose data starts off an 8-byte boundary (a hand-made header): the
+    chunks are copied into an aligned buffer, equal to what pread reads."""
+    rng = np.random.default_rng(5)
+    a = rng.random((2, 50, 3))
+    text = repr({"descr": "<f8", "fortran_order": False, "shape": a.shape})
+    pad = (-(10 + len(text) + 1)) % 64 + 4  # magic, length, text, pad, newline: 4 mod 64
+    blob = text + " " * pad + "\n"
+    path = tmp_path / "odd.npy"
+    with open(path, "wb") as fh:
+        fh.write(np.lib.format.magic(1, 0) + len(blob).to_bytes(2, "little") + blob.encode())
+        fh.write(a.tobytes())
+    f = FileField(path)
+    assert f.offset % 8 == 4 and f.dtype == np.float64
+    for s, e, rows in storage._prefetched(f, 1, 50, 16, (16, 3)):
+        assert rows.flags.aligned and rows.flags.writeable
+        np.testing.assert_array_equal(rows, a[1, s:e])
+    f.close()
