@@ -29,51 +29,30 @@ def fits(ds):
                                               r2pvi.PEVI(beta=0.1))]
 
 
-@pytest.mark.parametrize("window, chunk", [(1 << 25, 4096), (4096, 64), (100, 7)])
-def test_mapped_windows_read_what_pread_reads(data, window, chunk, monkeypatch):
-    """Windows smaller than a step, chunks that straddle nothing or everything: every chunk
-    equals FileField.read (pread), float64 and in file order."""
-    _, path = data
-    f = FileField(path / "next_phi.npy")
-    # the module that reads MAP_WINDOW (storage re-exports only its value)
-    monkeypatch.setattr(storage._reads, "MAP_WINDOW", window)
-    maps = []
-    real = mmap.mmap
-
-    def counted(*a, **k):
-        maps.append(a[1])
-        return real(*a, **k)
-
-    monkeypatch.setattr(mmap, "mmap", counted)
-    H, K = f.shape[:2]
-    shape = (min(chunk, K),) + f.shape[2:]
-    for h in (0, H - 1):
-        seen = 0
-        maps.clear()
-        for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
-            assert s == seen and rows.dtype == np.float64
-            np.testing.assert_array_equal(rows, f.read(h, s, e))
-            seen = e
-        assert seen == K
-        # the window took effect: a step is mapped whole only when it fits in one window
-        step = K * f._row
-        assert (len(maps) == 1) == (step <= window), (len(maps), step, window)
-    # a pass abandoned half-way releases its map (no BufferError, no open map left behind)
-    gen = storage._prefetched(f, 1, K, chunk, shape)
-    next(gen)
-    gen.close()
-
-
-def test_unmappable_files_fall_back_to_pread_with_the_same_fits(data, monkeypatch):
+def test_float32_files_are_read_by_pread_and_cast(data, monkeypatch):
+    """float32 files: no map; every chunk is float64, equal to FileField.read, in file order,
+    in one reused buffer; and the fits equal the in-memory fit."""
     mem, path = data
-    ref = fits(mem)
+    f = FileField(path / "next_phi.npy")
+    assert f.dtype == np.float32
 
     def refuse(*a, **k):
-        raise OSError("no mmap here")
+        raise AssertionError("float32 files are not mapped")
 
     monkeypatch.setattr(mmap, "mmap", refuse)
-    got = fits(OfflineDataset.open(path))
-    for a, b in zip(got, ref, strict=True):
+    H, K = f.shape[:2]
+    for chunk in (4096, 64, 7):
+        shape = (min(chunk, K),) + f.shape[2:]
+        for h in (0, H - 1):
+            seen, buffers = 0, set()
+            for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
+                assert s == seen and rows.dtype == np.float64 and rows.flags.c_contiguous
+                np.testing.assert_array_equal(rows, f.read(h, s, e))
+                buffers.add(rows.__array_interface__["data"][0])
+                seen = e
+            assert seen == K and len(buffers) == 1
+    f.close()
+    for a, b in zip(fits(OfflineDataset.open(path)), fits(mem), strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
 
 
@@ -129,9 +108,19 @@ def _mapping(rows):
 @pytest.mark.parametrize("window, chunk", [(1 << 25, 4096), (4096, 64), (100, 7)])
 def test_float64_files_are_read_as_views_of_the_map(data64, window, chunk, monkeypatch):
     """Native float64 files: every chunk is a read-only view of the mapped window (no copy),
-    bitwise what pread reads, in file order."""
+    bitwise what pread reads, in file order; windows smaller than a step, chunks that straddle
+    nothing or everything."""
     _, path = data64
+    # the module that reads MAP_WINDOW (storage re-exports only its value)
     monkeypatch.setattr(storage._reads, "MAP_WINDOW", window)
+    maps = []
+    real = mmap.mmap
+
+    def counted(*a, **k):
+        maps.append(a[1])
+        return real(*a, **k)
+
+    monkeypatch.setattr(mmap, "mmap", counted)
     for name in ("phi.npy", "next_phi.npy"):
         f = FileField(path / name)
         assert f.dtype == np.float64
@@ -139,14 +128,18 @@ def test_float64_files_are_read_as_views_of_the_map(data64, window, chunk, monke
         shape = (min(chunk, K),) + f.shape[2:]
         for h in (0, H - 1):
             seen = 0
+            maps.clear()
             for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
                 assert s == seen and rows.shape == (e - s,) + f.shape[2:]
                 assert rows.dtype == np.float64 and rows.flags.c_contiguous
                 assert not rows.flags.writeable and not rows.flags.owndata
-                assert isinstance(_mapping(rows), mmap.mmap)
+                assert isinstance(_mapping(rows), real)
                 assert rows.tobytes() == f.read(h, s, e).tobytes()
                 seen = e
             assert seen == K
+            # the window took effect: a step is mapped whole only when it fits in one window
+            step = K * f._row
+            assert (len(maps) == 1) == (step <= window), (len(maps), step, window)
         f.close()
 
 
