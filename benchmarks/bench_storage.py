@@ -5,17 +5,20 @@ reports the process's peak resident memory (``VmHWM``; see :func:`peak_rss_mib`)
 
     python benchmarks/bench_storage.py disk --K 1000000          # features stored, float32
     python benchmarks/bench_storage.py disk --keep --repeats 3   # again, best of 3 each
+    python benchmarks/bench_storage.py disk --K 500000 --dtype float64   # float64 storage
     python benchmarks/bench_storage.py scaling --Ks 1e5 1e6 1e7  # observations + feature map
     python benchmarks/bench_storage.py float32                   # float32 vs float64 storage
     python benchmarks/bench_storage.py behaviour --Ks 1e5 1e6    # next_form full vs behaviour
 
-``disk``: K trajectories (d = 30, H = 20, A = 2, synthetic simplex features, float32) written
-with ``r2pvi.DatasetWriter``; then the time to read the whole dataset once from the page
-cache (the second of two reads), and the fit time, CPU time (all threads) and peak RSS of
-R2PVI-TV, -KL, -chi^2 and DRPVI on ``OfflineDataset.open(path)``. The writer stores each
-step's Gram matrix with the data, so a TV step from disk is one pass of matrix-vector products
-over its features. On a shared machine the CPU-time ratios are the steadier ones; the load
-average is printed with every row.
+``disk``: K trajectories (d = 30, H = 20, A = 2, synthetic simplex features drawn in float32,
+stored as ``--dtype``: float32 by default, or float64, twice the bytes) written with
+``r2pvi.DatasetWriter`` to ``<dir>/features-K{K}-{dtype}`` (float32 data written under the
+older name ``features-K{K}`` is reused by ``--keep``); then the time to read the whole
+dataset once from the page cache (the second of two reads), and the fit time, CPU time (all
+threads) and peak RSS of R2PVI-TV, -KL, -chi^2 and DRPVI on ``OfflineDataset.open(path)``.
+The writer stores each step's Gram matrix with the data, so a TV step from disk is one pass
+of matrix-vector products over its features. On a shared machine the CPU-time ratios are
+the steadier ones; the load average is printed with every row.
 
 ``scaling``: stored 2-D observations (float32), int8 actions and a normalized-RBF x action
 feature map (d = 30), written with ``OfflineDataset.from_observations(...).save(path)``;
@@ -30,7 +33,8 @@ H = 20, A = 2, float32), written by ``DatasetWriter`` with ``next_form="full"`` 
 page cache and the R2PVI-TV fit time of each (the weights must be bitwise equal).
 
 Data goes to ``--dir`` (default ``/tmp/r2pvi-bench``); check ``df -h`` first: the K = 1e6
-feature dataset takes 7.3 GB, the K = 1e7 observation dataset 5 GB. ``--keep`` reuses data
+feature dataset takes 7.3 GB (14.7 GB in float64; a fair "read once" needs it in the page
+cache, so check the free memory too), the K = 1e7 observation dataset 5 GB. ``--keep`` reuses data
 already written.
 """
 

@@ -9,8 +9,8 @@ one range of trajectories at a time, wherever they are:
   fitting, a float32 step is read with ``pread`` into a reused buffer and cast chunk by chunk
   into a reused float64 one; a float64 step is memory-mapped a window of 32 MiB at a time and
   each chunk is a view of it, with no copy (the resident memory stays bounded; ``pread`` where
-  a file cannot be mapped); :meth:`FileField.read` reads a range with ``pread``, :meth:`FileField.lazy` gives a
-  memory map of the whole file for browsing;
+  a file cannot be mapped); :meth:`FileField.read` reads a range with ``pread``,
+  :meth:`FileField.lazy` gives a memory map of the whole file for browsing;
 - :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
 
 Next-state features are computed where they need not be stored (:class:`StoredNext`,
