@@ -4,7 +4,10 @@ Synthetic data: K trajectories, d features, H steps, two actions (the size of th
 speed target and of the authors' timing figure). The floor is what any implementation of
 the paper must do: the H Gram matrices (with their Cholesky factors) and H ridge solves,
 timed in this same run. Each timing is the median of ``--repeats`` rounds in which every
-estimator is fitted once (round-robin, after one warm-up fit each).
+estimator is fitted once (round-robin, after one warm-up fit each). The "paired" columns
+are the median over the rounds of the ratio within a round (each fit against the floor or
+R2PVI-TV timed seconds apart): steadier than the ratio of medians when the machine's speed
+drifts during the run.
 
     python benchmarks/bench_fit.py                 # K=10000, d=30, H=20
     python benchmarks/bench_fit.py --K 2000 --d 60
@@ -84,9 +87,10 @@ def import_baseline(src: str):
     return importlib.import_module("r2pvi_baseline")
 
 
-def interleaved_medians(fns: dict, repeats: int, clock=time.perf_counter) -> dict:
-    """Median time of each function (wall time, or ``clock``), timed round-robin (one warm-up
-    call each first) so that every ratio compares runs made under the same machine conditions."""
+def interleaved_times(fns: dict, repeats: int, clock=time.perf_counter) -> dict:
+    """Every round's time of each function (wall time, or ``clock``), timed round-robin (one
+    warm-up call each first) so that every ratio compares runs made under the same machine
+    conditions."""
     for fn in fns.values():
         fn()
     times = {name: [] for name in fns}
@@ -95,7 +99,19 @@ def interleaved_medians(fns: dict, repeats: int, clock=time.perf_counter) -> dic
             t0 = clock()
             fn()
             times[name].append(clock() - t0)
-    return {name: statistics.median(t) for name, t in times.items()}
+    return times
+
+
+def interleaved_medians(fns: dict, repeats: int, clock=time.perf_counter) -> dict:
+    """Median time of each function over interleaved rounds (:func:`interleaved_times`)."""
+    return {name: statistics.median(t)
+            for name, t in interleaved_times(fns, repeats, clock).items()}
+
+
+def paired_ratio(times: dict, name: str, ref: str) -> float:
+    """Median over the rounds of ``name``'s time over ``ref``'s time in the same round: a
+    paired comparison, insensitive to the machine's speed drifting between rounds."""
+    return statistics.median(a / b for a, b in zip(times[name], times[ref], strict=True))
 
 
 def estimators(theta, package=None):
@@ -142,16 +158,21 @@ def main(argv=None):
             if not args.only or name in args.only or name == "R2PVI-TV":
                 fns[label + name] = lambda est=est, ds=ds: est.fit(forget_grams(ds))
     clock = time.process_time if args.cpu else time.perf_counter
-    med = interleaved_medians(fns, args.repeats, clock)
+    times = interleaved_times(fns, args.repeats, clock)
+    med = {name: statistics.median(t) for name, t in times.items()}
     print(f"K={args.K} d={args.d} H={args.H} A=2; median of {args.repeats} interleaved rounds"
           f" ({'CPU' if args.cpu else 'wall'} time)")
     for label in versions:
         floor, tv = med[label + "floor"], med[label + "R2PVI-TV"]
-        print(f"{label + 'fit':<20s} {'time':>10s} {'/ floor':>8s} {'/ R2PVI-TV':>11s}")
+        print(f"{label + 'fit':<20s} {'time':>10s} {'/ floor':>8s} {'/ R2PVI-TV':>11s}"
+              f"  paired: {'/ floor':>7s} {'/ TV':>6s}")
         for name, t in med.items():
             if name.startswith(label) and (label or not name.startswith("baseline ")):
-                print(f"{name:<20s} {t * 1e3:8.1f} ms {t / floor:7.2f}x {t / tv:10.2f}x")
-    print("floor = the H Gram matrices with their Cholesky factors and the H ridge solves")
+                print(f"{name:<20s} {t * 1e3:8.1f} ms {t / floor:7.2f}x {t / tv:10.2f}x"
+                      f"          {paired_ratio(times, name, label + 'floor'):6.2f}x"
+                      f" {paired_ratio(times, name, label + 'R2PVI-TV'):5.2f}x")
+    print("floor = the H Gram matrices with their Cholesky factors and the H ridge solves; "
+          "paired = median over the rounds of the ratio within each round")
 
 
 if __name__ == "__main__":
