@@ -5,17 +5,20 @@ reports the process's peak resident memory (``VmHWM``; see :func:`peak_rss_mib`)
 
     python benchmarks/bench_storage.py disk --K 1000000          # features stored, float32
     python benchmarks/bench_storage.py disk --keep --repeats 3   # again, best of 3 each
+    python benchmarks/bench_storage.py disk --K 500000 --dtype float64   # float64 storage
     python benchmarks/bench_storage.py scaling --Ks 1e5 1e6 1e7  # observations + feature map
     python benchmarks/bench_storage.py float32                   # float32 vs float64 storage
     python benchmarks/bench_storage.py behaviour --Ks 1e5 1e6    # next_form full vs behaviour
 
-``disk``: K trajectories (d = 30, H = 20, A = 2, synthetic simplex features, float32) written
-with ``r2pvi.DatasetWriter``; then the time to read the whole dataset once from the page
-cache (the second of two reads), and the fit time, CPU time (all threads) and peak RSS of
-R2PVI-TV, -KL, -chi^2 and DRPVI on ``OfflineDataset.open(path)``. The writer stores each
-step's Gram matrix with the data, so a TV step from disk is one pass of matrix-vector products
-over its features. On a shared machine the CPU-time ratios are the steadier ones; the load
-average is printed with every row.
+``disk``: K trajectories (d = 30, H = 20, A = 2, synthetic simplex features drawn in float32,
+stored as ``--dtype``: float32 by default, or float64, twice the bytes) written with
+``r2pvi.DatasetWriter`` to ``<dir>/features-K{K}-{dtype}`` (float32 data written under the
+older name ``features-K{K}`` is reused by ``--keep``); then the time to read the whole
+dataset once from the page cache (the second of two reads), and the fit time, CPU time (all
+threads) and peak RSS of R2PVI-TV, -KL, -chi^2 and DRPVI on ``OfflineDataset.open(path)``.
+The writer stores each step's Gram matrix with the data, so a TV step from disk is one pass
+of matrix-vector products over its features. On a shared machine the CPU-time ratios are
+the steadier ones; the load average is printed with every row.
 
 ``scaling``: stored 2-D observations (float32), int8 actions and a normalized-RBF x action
 feature map (d = 30), written with ``OfflineDataset.from_observations(...).save(path)``;
@@ -30,7 +33,8 @@ H = 20, A = 2, float32), written by ``DatasetWriter`` with ``next_form="full"`` 
 page cache and the R2PVI-TV fit time of each (the weights must be bitwise equal).
 
 Data goes to ``--dir`` (default ``/tmp/r2pvi-bench``); check ``df -h`` first: the K = 1e6
-feature dataset takes 7.3 GB, the K = 1e7 observation dataset 5 GB. ``--keep`` reuses data
+feature dataset takes 7.3 GB (14.7 GB in float64; a fair "read once" needs it in the page
+cache, so check the free memory too), the K = 1e7 observation dataset 5 GB. ``--keep`` reuses data
 already written.
 """
 
@@ -93,12 +97,14 @@ def estimator(name):
 
 
 # ----------------------------------------------------------------------------- writing
-def write_features(path: Path, K: int, chunk: int = 20_000, seed: int = 0):
+def write_features(path: Path, K: int, chunk: int = 20_000, seed: int = 0,
+                   dtype: str = "float32"):
+    """The ``disk`` data; the same (float32-drawn) numbers whatever the storage ``dtype``."""
     from r2pvi import DatasetWriter
 
     rng = np.random.default_rng(seed)
     th = theta()
-    with DatasetWriter(path, horizon=H, n_features=D, n_actions=A, dtype="float32",
+    with DatasetWriter(path, horizon=H, n_features=D, n_actions=A, dtype=dtype,
                        overwrite=True) as w:
         for s in range(0, K, chunk):
             k = min(chunk, K - s)
@@ -232,17 +238,30 @@ def run_child(**task) -> dict:
 
 
 # ----------------------------------------------------------------------------- main
+def features_path(root: Path, K: int, dtype: str, keep: bool) -> Path:
+    """``features-K{K}-{dtype}``; with ``keep``, float32 data written under the older name
+    ``features-K{K}`` (before ``--dtype``) is reused when the new name does not exist."""
+    path = root / f"features-K{K}-{dtype}"
+    legacy = root / f"features-K{K}"
+    if (keep and dtype == "float32" and not (path / "manifest.json").exists()
+            and (legacy / "manifest.json").exists()
+            and json.loads((legacy / "manifest.json").read_text()).get("dtype") == dtype):
+        return legacy
+    return path
+
+
 def disk(args):
-    path = Path(args.dir) / f"features-K{args.K}"
+    path = features_path(Path(args.dir), args.K, args.dtype, args.keep)
     if not (args.keep and (path / "manifest.json").exists()):
         from threadpoolctl import threadpool_limits
 
         t0 = time.perf_counter()
         with threadpool_limits(BLAS_THREADS):  # the writer forms each step's Gram matrix
-            write_features(path, args.K)
+            write_features(path, args.K, dtype=args.dtype)
         print(f"wrote {path} in {time.perf_counter() - t0:.1f} s")
     size = dir_size(path)
-    print(f"K = {args.K}, d = {D}, H = {H}, A = {A}, float32 on disk: {size / 2**30:.2f} GiB")
+    print(f"K = {args.K}, d = {D}, H = {H}, A = {A}, {args.dtype} on disk: "
+          f"{size / 2**30:.2f} GiB ({path})")
     run_child(what="read", path=str(path))  # warm the page cache
     read = best_of(args.repeats, what="read", path=str(path))
     print(f"{'task':<12} {'seconds':>8} {'x read':>7} {'CPU s':>7} {'x read':>7} "
@@ -346,6 +365,9 @@ def main(argv=None):
     d.add_argument("--repeats", type=int, default=1,
                    help="fresh processes per task; the least CPU time is reported (and the "
                    "least wall time)")
+    d.add_argument("--dtype", choices=["float32", "float64"], default="float32",
+                   help="storage type of the features (float64: 2x the bytes; the fit reads "
+                   "the mapped pages with no copy)")
     s = sub.add_parser("scaling")
     s.add_argument("--Ks", nargs="*", default=["1e5", "1e6", "1e7"])
     b = sub.add_parser("behaviour")

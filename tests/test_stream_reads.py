@@ -29,51 +29,30 @@ def fits(ds):
                                               r2pvi.PEVI(beta=0.1))]
 
 
-@pytest.mark.parametrize("window, chunk", [(1 << 25, 4096), (4096, 64), (100, 7)])
-def test_mapped_windows_read_what_pread_reads(data, window, chunk, monkeypatch):
-    """Windows smaller than a step, chunks that straddle nothing or everything: every chunk
-    equals FileField.read (pread), float64 and in file order."""
-    _, path = data
-    f = FileField(path / "next_phi.npy")
-    # the module that reads MAP_WINDOW (storage re-exports only its value)
-    monkeypatch.setattr(storage._reads, "MAP_WINDOW", window)
-    maps = []
-    real = mmap.mmap
-
-    def counted(*a, **k):
-        maps.append(a[1])
-        return real(*a, **k)
-
-    monkeypatch.setattr(mmap, "mmap", counted)
-    H, K = f.shape[:2]
-    shape = (min(chunk, K),) + f.shape[2:]
-    for h in (0, H - 1):
-        seen = 0
-        maps.clear()
-        for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
-            assert s == seen and rows.dtype == np.float64
-            np.testing.assert_array_equal(rows, f.read(h, s, e))
-            seen = e
-        assert seen == K
-        # the window took effect: a step is mapped whole only when it fits in one window
-        step = K * f._row
-        assert (len(maps) == 1) == (step <= window), (len(maps), step, window)
-    # a pass abandoned half-way releases its map (no BufferError, no open map left behind)
-    gen = storage._prefetched(f, 1, K, chunk, shape)
-    next(gen)
-    gen.close()
-
-
-def test_unmappable_files_fall_back_to_pread_with_the_same_fits(data, monkeypatch):
+def test_float32_files_are_read_by_pread_and_cast(data, monkeypatch):
+    """float32 files: no map; every chunk is float64, equal to FileField.read, in file order,
+    in one reused buffer; and the fits equal the in-memory fit."""
     mem, path = data
-    ref = fits(mem)
+    f = FileField(path / "next_phi.npy")
+    assert f.dtype == np.float32
 
     def refuse(*a, **k):
-        raise OSError("no mmap here")
+        raise AssertionError("float32 files are not mapped")
 
     monkeypatch.setattr(mmap, "mmap", refuse)
-    got = fits(OfflineDataset.open(path))
-    for a, b in zip(got, ref, strict=True):
+    H, K = f.shape[:2]
+    for chunk in (4096, 64, 7):
+        shape = (min(chunk, K),) + f.shape[2:]
+        for h in (0, H - 1):
+            seen, buffers = 0, set()
+            for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
+                assert s == seen and rows.dtype == np.float64 and rows.flags.c_contiguous
+                np.testing.assert_array_equal(rows, f.read(h, s, e))
+                buffers.add(rows.__array_interface__["data"][0])
+                seen = e
+            assert seen == K and len(buffers) == 1
+    f.close()
+    for a, b in zip(fits(OfflineDataset.open(path)), fits(mem), strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
 
 
@@ -109,3 +88,144 @@ def test_next_state_values_by_one_product_equal_the_definition(penalty, beta, A,
     np.testing.assert_array_equal(out, truth)
     linear = qmax.linear(not signed)
     assert (linear is not None) == (beta == 0.0 or (penalty == "l1" and not signed))
+
+
+# ----------------------------------------------------------------------------- float64 files
+@pytest.fixture(scope="module")
+def data64(data, tmp_path_factory):
+    mem, _ = data
+    return mem, mem.save(tmp_path_factory.mktemp("reads64") / "ds", dtype="float64")
+
+
+def _mapping(rows):
+    """The ``mmap`` an array is a view of (through NumPy's memoryview), else None."""
+    base = rows
+    while base is not None and not isinstance(base, memoryview):
+        base = base.base
+    return None if base is None else base.obj
+
+
+@pytest.mark.parametrize("window, chunk", [(1 << 25, 4096), (4096, 64), (100, 7)])
+def test_float64_files_are_read_as_views_of_the_map(data64, window, chunk, monkeypatch):
+    """Native float64 files: every chunk is a read-only view of the mapped window (no copy),
+    bitwise what pread reads, in file order; windows smaller than a step, chunks that straddle
+    nothing or everything."""
+    _, path = data64
+    # the module that reads MAP_WINDOW (storage re-exports only its value)
+    monkeypatch.setattr(storage._reads, "MAP_WINDOW", window)
+    maps = []
+    real = mmap.mmap
+
+    def counted(*a, **k):
+        maps.append(a[1])
+        return real(*a, **k)
+
+    monkeypatch.setattr(mmap, "mmap", counted)
+    for name in ("phi.npy", "next_phi.npy"):
+        f = FileField(path / name)
+        assert f.dtype == np.float64
+        H, K = f.shape[:2]
+        shape = (min(chunk, K),) + f.shape[2:]
+        for h in (0, H - 1):
+            seen = 0
+            maps.clear()
+            for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
+                assert s == seen and rows.shape == (e - s,) + f.shape[2:]
+                assert rows.dtype == np.float64 and rows.flags.c_contiguous
+                assert not rows.flags.writeable and not rows.flags.owndata
+                assert isinstance(_mapping(rows), real)
+                assert rows.tobytes() == f.read(h, s, e).tobytes()
+                seen = e
+            assert seen == K
+            # the window took effect: a step is mapped whole only when it fits in one window
+            step = K * f._row
+            assert (len(maps) == 1) == (step <= window), (len(maps), step, window)
+        f.close()
+
+
+def test_a_kept_float64_chunk_stays_valid_and_its_map_goes_with_it(data64, monkeypatch):
+    """A chunk kept past its iteration (against the contract) never points at unmapped memory:
+    closing its window is refused (BufferError, caught), the window stays mapped while a view
+    lives and is unmapped when the last view goes (the mmap is deallocated). A pass keeps at
+    most two windows alive (the caller's loop variable holds the previous chunk while the next
+    window is mapped), so the resident memory stays bounded."""
+    import gc
+    import weakref
+
+    _, path = data64
+    monkeypatch.setattr(storage._reads, "MAP_WINDOW", 4096)
+    f = FileField(path / "next_phi.npy")
+    K = f.shape[1]
+    shape = (64,) + f.shape[2:]
+
+    def alive(refs):
+        return [r() for r in refs if r() is not None and not r().closed]
+
+    refs, kept = [], None
+    for s, e, rows in storage._prefetched(f, 1, K, 64, shape):  # run to the end
+        mm = _mapping(rows)
+        if not refs or refs[-1]() is not mm:
+            refs.append(weakref.ref(mm))
+        del mm
+        assert len(alive(refs)) <= 2 + (kept is not None)
+        if s == 64:
+            kept = (s, e, rows)
+    assert len(refs) > 2
+    del rows
+    s, e, rows = kept
+    del kept
+    mine = _mapping(rows)
+    assert alive(refs) == [mine]  # every other window is unmapped
+    np.testing.assert_array_equal(rows, f.read(1, s, e))
+    assert storage._reads._unmap(mine) is False and not mine.closed  # a view is alive
+    # abandoned half-way while a chunk is held: no BufferError from the generator's close
+    gen = storage._prefetched(f, 1, K, 64, shape)
+    s2, e2, held = next(gen)
+    gen.close()
+    np.testing.assert_array_equal(held, f.read(1, s2, e2))
+    assert not _mapping(held).closed
+    gone = weakref.ref(_mapping(held))
+    del held
+    assert gone() is None
+    # the last view released: nothing exports the map any more
+    del rows
+    gc.collect()
+    assert storage._reads._unmap(mine) is True and mine.closed
+    f.close()
+
+
+def test_float64_fits_without_a_copy_equal_the_copying_reads(data64, monkeypatch):
+    """The zero-copy path does the arithmetic of the copying one (pread into a float64
+    buffer): the same weights bitwise; and the in-memory fit's to 1e-10."""
+    mem, path = data64
+    direct = fits(OfflineDataset.open(path))
+
+    def refuse(*a, **k):
+        raise OSError("no mmap here")
+
+    with monkeypatch.context() as m:
+        m.setattr(mmap, "mmap", refuse)
+        copied = fits(OfflineDataset.open(path))
+    for a, b, c in zip(direct, copied, fits(mem), strict=True):
+        assert a.tobytes() == b.tobytes()
+        np.testing.assert_allclose(a, c, rtol=0, atol=1e-10)
+
+
+def test_unaligned_float64_files_are_copied(tmp_path):
+    """A float64 .npy whose data starts off an 8-byte boundary (a hand-made header): the
+    chunks are copied into an aligned buffer, equal to what pread reads."""
+    rng = np.random.default_rng(5)
+    a = rng.random((2, 50, 3))
+    text = repr({"descr": "<f8", "fortran_order": False, "shape": a.shape})
+    pad = (-(10 + len(text) + 1)) % 64 + 4  # magic, length, text, pad, newline: 4 mod 64
+    blob = text + " " * pad + "\n"
+    path = tmp_path / "odd.npy"
+    with open(path, "wb") as fh:
+        fh.write(np.lib.format.magic(1, 0) + len(blob).to_bytes(2, "little") + blob.encode())
+        fh.write(a.tobytes())
+    f = FileField(path)
+    assert f.offset % 8 == 4 and f.dtype == np.float64
+    for s, e, rows in storage._prefetched(f, 1, 50, 16, (16, 3)):
+        assert rows.flags.aligned and rows.flags.writeable
+        np.testing.assert_array_equal(rows, a[1, s:e])
+    f.close()

@@ -6,10 +6,11 @@ one range of trajectories at a time, wherever they are:
 
 - :class:`ArrayField` — a NumPy array (or a read-only view of the caller's array, no copy);
 - :class:`FileField` — a ``.npy`` file of the on-disk format, read chunk by chunk: while
-  fitting, a step is memory-mapped a window of 32 MiB at a time and cast chunk by chunk into a
-  reused float64 buffer (the resident memory stays bounded; ``pread`` where a file cannot be
-  mapped); :meth:`FileField.read` reads a range with ``pread``, :meth:`FileField.lazy` gives a
-  memory map of the whole file for browsing;
+  fitting, a float32 step is read with ``pread`` into a reused buffer and cast chunk by chunk
+  into a reused float64 one; a float64 step is memory-mapped a window of 32 MiB at a time and
+  each chunk is a view of it, with no copy (the resident memory stays bounded; ``pread`` where
+  a file cannot be mapped); :meth:`FileField.read` reads a range with ``pread``,
+  :meth:`FileField.lazy` gives a memory map of the whole file for browsing;
 - :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
 
 Next-state features are computed where they need not be stored (:class:`StoredNext`,
@@ -41,7 +42,8 @@ Plain ``.npy`` files (no pickle, ``allow_pickle=False`` on every read), describe
 manifest with the shapes, dtypes and cached facts (non-negativity of the features).
 
 The modules, each importing only those listed before it: ``_fields`` (the fields, ``CHUNK``),
-``_reads`` (a file step streamed through memory-mapped windows, ``MAP_WINDOW``), ``_next``
+``_reads`` (a file step streamed by chunk: ``pread`` and a cast, or views of
+memory-mapped windows, ``MAP_WINDOW``), ``_next``
 (the next-state forms), ``_format`` (manifest, ``.npy`` headers, atomic directories),
 ``_behaviour`` (the behaviour form, ``SIDE_BLOCK``), ``_source`` (:class:`StepSource`),
 ``_checks`` (validation), ``_directory`` (:func:`open_directory`, :func:`write_directory`),

@@ -80,7 +80,8 @@ class ArrayField(Field):
 
 class FileField(Field):
     """A field in a ``.npy`` file: :meth:`read` reads a range with ``pread`` (into ``out`` or a
-    fresh array); fits stream a step through windows of a memory map (``_prefetched``)."""
+    fresh array); fits stream a step by chunk (``_prefetched``: ``pread`` and a cast for
+    float32, views of memory-mapped windows for float64)."""
 
     def __init__(self, path):
         self.path = Path(path)
