@@ -215,7 +215,14 @@ def _hermite_full(t0, t1, g0, d0, dd0, g1, d1, dd1, iters=12):
     h = t1 - t0
     with np.errstate(all="ignore"):
         c1, c2, c3, c4, c5 = C._quintic_coefficients(t0, t1, g0, d0, dd0, g1, d1, dd1)
-        s = np.where(g1 > g0, 1.0, 0.0)
+
+        def quintic(x):
+            return g0 + x * (c1 + x * (c2 + x * (c3 + x * (c4 + x * c5))))
+
+        grid = [quintic(np.full_like(t0, x)) for x in C._HERMITE_GRID]
+        j = np.argmax(np.stack(grid, axis=1), axis=1)  # start at the best grid point
+        s = C._HERMITE_GRID[j]
+        best = np.stack(grid, axis=1)[np.arange(j.size), j]
         for _ in range(iters):
             p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
             p2 = 2.0 * c2 + s * (6.0 * c3 + s * (12.0 * c4 + s * 20.0 * c5))
@@ -227,6 +234,8 @@ def _hermite_full(t0, t1, g0, d0, dd0, g1, d1, dd1, iters=12):
         p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
         good = (h > 0) & (s > 0.0) & (s < 1.0) & np.isfinite(s) & np.isfinite(
             g0 + g1 + d0 + d1 + dd0 + dd1) & (np.abs(p1) <= 1e-6 * (np.abs(c1) + np.abs(h * d1)))
+        size = sum(np.abs(c) for c in (g0, c1, c2, c3, c4, c5))
+        good &= quintic(s) >= best - 1e-12 * size  # no lower than the best grid point
     return np.where(good, t0 + h * s, np.nan)
 
 

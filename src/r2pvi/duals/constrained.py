@@ -856,8 +856,17 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
     h = t1 - t0
     with np.errstate(all="ignore"):
         c1, c2, c3, c4, c5 = _quintic_coefficients(t0, t1, g0, d0, dd0, g1, d1, dd1)
-        # Newton on p'(s) = 0 from the end with the larger value, kept in [0, 1].
-        s = np.where(g1 > g0, 1.0, 0.0)
+        # Newton on p'(s) = 0 from the best of _HERMITE_GRID (p(s) = g0 + c1 s + ... + c5 s^5),
+        # kept in [0, 1]. From an end, Newton can stop at a stationary inflection (p(t) = t^3 -
+        # t^5 from t = -0.25: p' -> 0 at 0 while the maximum is at 0.77) or miss the second of
+        # two interior maxima; the grid puts it next to the largest (unless narrower than the
+        # grid's spacing).
+        g = _HERMITE_GRID
+        on_grid = g0[:, None] + g * (c1[:, None] + g * (c2[:, None] + g * (
+            c3[:, None] + g * (c4[:, None] + g * c5[:, None]))))
+        j = np.argmax(on_grid, axis=1)
+        grid_best = on_grid[np.arange(j.size), j]
+        s = g[j]
         s_prev = np.full_like(s, np.nan)
         a2, a3, a4, a5 = 2.0 * c2, 3.0 * c3, 4.0 * c4, 5.0 * c5  # p'(s) = c1 + a2 s + ...
         b3, b4, b5 = 6.0 * c3, 12.0 * c4, 20.0 * c5  # p''(s) = a2 + b3 s + ...
@@ -878,9 +887,16 @@ def _hermite_argmax(t0, t1, g0, d0, dd0, g1, d1, dd1, iters: int = 12):
                 break
             s_prev, s = s, s_new
         p1 = c1 + s * (a2 + s * (a3 + s * (a4 + s * a5)))
+        p0 = g0 + s * (c1 + s * (c2 + s * (c3 + s * (c4 + s * c5))))
         good = (h > 0) & (s > 0.0) & (s < 1.0) & np.isfinite(s) & np.isfinite(
             g0 + g1 + d0 + d1 + dd0 + dd1) & (np.abs(p1) <= 1e-6 * (np.abs(c1) + np.abs(h * d1)))
+        # no worse than the best grid point (up to rounding in the polynomial's value)
+        good &= p0 >= grid_best - 1e-12 * (np.abs(g0) + np.abs(c1) + np.abs(c2) + np.abs(c3)
+                                             + np.abs(c4) + np.abs(c5))
     return np.where(good, t0 + h * s, np.nan)
+
+
+_HERMITE_GRID = np.linspace(0.0, 1.0, 17)  # starting points of _hermite_argmax (s in [0, 1])
 
 
 _EXPM1_FROM = 64.0  # on the grid, expm1 (not exp - 1) for b above this many max |V|
