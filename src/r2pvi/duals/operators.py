@@ -188,14 +188,16 @@ _UPPER_ONES = np.triu(np.ones((BLOCK, BLOCK)))
 
 
 def sort_order(v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """An ``order`` with ``v[order]`` non-decreasing (a permutation, as ``np.argsort(v)``; ties
-    in index order), and ``v[order]`` written into ``out`` if given.
+    """An ``order`` with ``v[order]`` non-decreasing (a permutation, like ``np.argsort(v)``;
+    equal values in index order, except that every -0.0 comes before every 0.0), and
+    ``v[order]`` written into ``out`` if given.
 
     One ``np.sort`` of 64-bit keys instead of ``np.argsort`` (about 2x faster from 1e4 values
     on): the bits of each float made order-preserving as integers, their last ``b`` bits
     replaced by the index (``2^b >= n``). Values that differ in those bits only come out in
-    index order: each such run is then sorted by value (few and short). With NaN (whose keys
-    come first or last) it is ``np.argsort``.
+    index order: each such run is then sorted by value (few and short). With NaN it is
+    ``np.argsort`` (NaN keys come first or last, or share the run of an infinity when the
+    NaN's payload lies in the last ``b`` bits: checked whenever an infinity ends the sort).
     """
     v = np.ascontiguousarray(v, dtype=float)
     n = v.size
@@ -214,7 +216,8 @@ def sort_order(v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     keys.sort()
     order = keys & np.int64((1 << shift) - 1)
     s = np.take(v, order, out=out)
-    if np.isnan(s[0]) or np.isnan(s[-1]):  # NaN keys sort first or last; np.argsort's order
+    if np.isnan(s[0]) or np.isnan(s[-1]) or (
+            (s[0] == -np.inf or s[-1] == np.inf) and np.isnan(s).any()):  # np.argsort's order
         order = np.argsort(v)
         np.take(v, order, out=s)
         return order

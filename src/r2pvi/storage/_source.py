@@ -143,8 +143,10 @@ class StepSource:
 
     def phi_chunks(self, h: int):
         """``(start, stop, rows)`` over step ``h``'s taken-action features, ``rows`` a float64
-        ``(stop - start, d)`` array valid until the next iteration (reused buffers; on disk
-        a reader thread fetches the next chunk while the caller computes on this one)."""
+        ``(stop - start, d)`` array to read, valid until the next iteration and not to be
+        written: a reused buffer, a view of an in-memory array, or (native float64 files) a
+        read-only view of the memory-mapped file (see ``storage._reads._prefetched``); copy
+        what must outlive the iteration."""
         field, K = self.phi, self.n_trajectories
         shape = (min(self.chunk, K), self.n_features)
         if isinstance(field, FileField):
