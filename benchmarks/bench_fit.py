@@ -171,6 +171,11 @@ def main(argv=None):
                 print(f"{name:<20s} {t * 1e3:8.1f} ms {t / floor:7.2f}x {t / tv:10.2f}x"
                       f"          {paired_ratio(times, name, label + 'floor'):6.2f}x"
                       f" {paired_ratio(times, name, label + 'R2PVI-TV'):5.2f}x")
+    if args.baseline:  # each estimator against its baseline version, round by round
+        print(f"{'this / baseline':<20s} {'paired':>10s}")
+        for name in med:
+            if not name.startswith("baseline ") and "baseline " + name in times:
+                print(f"{name:<20s} {paired_ratio(times, name, 'baseline ' + name):9.3f}x")
     print("floor = the H Gram matrices with their Cholesky factors and the H ridge solves; "
           "paired = median over the rounds of the ratio within each round")
 

@@ -26,24 +26,13 @@ def _prefetched(field: FileField, h, n, chunk, shape):
     (the writers of this module never do: they write a new directory and rename it into
     place).
 
-    Measured (``benchmarks/bench_storage.py disk --keep --repeats 3 --estimators R2PVI-TV
-    R2PVI-KL``, least CPU time of 3 fresh processes, the two codes in turn, load 1.2-2.1,
-    2026-12-02; docs/storage.md). float32, K = 1e6, eight rounds: ``pread`` + cast against the
-    cast from mapped 32 MiB windows used before, TV 1.71-2.24 s against 1.93-2.65 s (less in
-    every round), KL 1.90-2.39 against 2.17-2.81, peak RSS 217 MiB against 248. Mapping and
-    unmapping cost about 0.25 us per 4 KiB page, more than the copy ``pread`` makes into a
-    cached buffer (one process reading 10 steps of next-state features: 0.28 s by ``pread``,
-    0.44 s copied out of the map). In one process, 10 steps of next-state values (cast and
-    product): 0.59 s with ``pread`` against 0.64 s from the map; ``MAP_POPULATE`` 0.85 s, 128
-    MiB windows 0.70 s; the cast and product in L2-sized sub-chunks of 512-2048 rows no better,
-    a mixed-type ``einsum`` 14% slower. float64, K = 5e5, four rounds: views of the map against
-    a copy of each chunk out of the map (the code before), TV 0.85-1.10 s against 1.11-1.31, KL
-    0.91-1.18 against 1.20-1.43 (K = 1e6, two rounds: TV 1.97-2.18 s against 2.59-2.79, KL
-    2.15-2.28 against 2.77-3.09, about 1.2x one read); two rounds against ``pread`` into a
-    float64 buffer, TV 0.99-1.04 against 1.04-1.19, KL 0.99-1.13 against 1.13-1.29. Earlier (the
-    same data, fresh processes taken in turn): a reader thread that read and cast the next chunk
-    while this one was computed cost about twice the CPU time per pass (wall time no better),
-    and ``posix_fadvise(WILLNEED)`` took 10% of a TV fit's samples for pages already cached.
+    Why (measured with ``benchmarks/bench_storage.py disk``; the numbers and what was tried
+    and dropped are in docs/storage.md, "Read path by storage type"): for float32 files,
+    mapping and unmapping cost ~0.25 us per 4 KiB page, more than ``pread``'s copy into a
+    cached buffer (TV 1.71-2.24 s of CPU against 1.93-2.65 s cast from mapped windows at
+    K = 1e6); for float64 files the views save the copy (TV about 1.2x one read at K = 1e6
+    against ~1.4x with a copy out of the map). A reader thread, ``posix_fadvise(WILLNEED)``,
+    ``MAP_POPULATE``, larger windows and L2-sized sub-chunks did not help.
 
     A view that escapes (a caller that keeps a chunk against the contract) never dangles:
     NumPy's view holds a buffer export of the ``mmap``, so ``mmap.close`` raises
