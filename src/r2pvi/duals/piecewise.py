@@ -26,6 +26,7 @@ import numpy as np
 
 from ._scratch import buffer
 from .operators import BLOCK, ExpectationOperator, fine_blocks
+from .ranges import clip
 
 __all__ = [
     "chi2_objective", "segments_max", "blockwise_max", "dense_max", "tv_ball_max", "BlockScan",
@@ -36,21 +37,14 @@ def chi2_objective(e1, e2, lam, mean_clip=None, second_clip=None, out=None):
     """``c1(E1) + (c1(E1)^2 - c2(E2)) / (4 lam)`` (inputs unchanged; ``out`` optional)."""
     big = out is not None
     if mean_clip is not None:
-        e1 = _clip(e1, *mean_clip, out=buffer("chi2.e1c", np.shape(e1)) if big else None)
+        e1 = clip(e1, *mean_clip, out=buffer("chi2.e1c", np.shape(e1)) if big else None)
     if second_clip is not None:
-        e2 = _clip(e2, *second_clip, out=buffer("chi2.e2c", np.shape(e2)) if big else None)
+        e2 = clip(e2, *second_clip, out=buffer("chi2.e2c", np.shape(e2)) if big else None)
     out = np.multiply(e1, e1, out=out)
     out -= e2
     out *= 0.25 / lam
     out += e1
     return out
-
-
-def _clip(x, lo, hi, out=None):
-    """``np.clip(x, lo, hi, out=out)``, i.e. ``min(max(x, lo), hi)`` (NaN kept), as two ufunc
-    calls without np.clip's Python layers (a few microseconds, ten calls per dual)."""
-    out = np.maximum(x, lo, out=out)
-    return np.minimum(out, hi, out=out)
 
 
 def _sign_changes(f):
@@ -428,7 +422,7 @@ def _chi2_block_bounds(scan: _Level, lam, mean_clip, second_clip):
     if not monotone:
         np.maximum(upper, _g_of_mean(e1_lo, q, mean_clip, key + ".up2"), out=upper)
     if second_clip is not None:
-        _clip(e2_lo, *second_clip, out=e2_lo)
+        clip(e2_lo, *second_clip, out=e2_lo)
     e2_lo *= q
     upper -= e2_lo
     return upper
@@ -437,7 +431,7 @@ def _chi2_block_bounds(scan: _Level, lam, mean_clip, second_clip):
 def _g_of_mean(e1, q, mean_clip, key):
     """``c + q c^2`` with ``c`` the clipped ``e1`` (clipped in place), into a work buffer."""
     if mean_clip is not None:
-        _clip(e1, *mean_clip, out=e1)
+        clip(e1, *mean_clip, out=e1)
     g = np.multiply(e1, e1, out=buffer(key, e1.shape))
     g *= q
     g += e1
