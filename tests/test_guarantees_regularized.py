@@ -287,7 +287,9 @@ def test_alpha_interval_contains_the_maximizer_for_every_distribution(case, log_
     seed, S, d, _, ties = case
     mu, v = exact_problem(seed, S, d, 3.0, ties)
     lam = 10.0**log_lam
-    cap = _mass_bound(mu, np.ones(d), v, lam, div)
+    # the bound in alpha: _mass_bound measures it from floor + lam s0
+    floor, s0 = float(v.min()), div.centre
+    cap = floor + lam * s0 + _mass_bound(mu, np.ones(d), v, lam, div, floor, s0)
     grid = np.linspace(v.min() - 3 - 3 * lam, v.max() + 3 + 3 * lam, 20001)
     with np.errstate(all="ignore"):
         g = grid[:, None] - lam * np.einsum(
@@ -476,3 +478,42 @@ def test_kl_form_is_validated(bad):
     env = SimulatedLinearMDP(delta=0.3, xi_norm=0.3)
     with pytest.raises(ValueError, match="kl_form"):
         R2PVI("kl", 1.0, kl_form=bad).fit(env.collect(5, seed=0))
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1.0])
+@pytest.mark.parametrize("lam", [1e4, 1e8, 1e12])
+def test_general_f_equals_the_closed_forms_at_huge_lambda(scale, lam):
+    """Algorithm 1 as ``s alpha - lam E[f*]`` cancelled two terms of size lam: KL as an
+    FDivergence was 3.4e-7 above E V at lam = 1e4 on values ~1e-6 and -100% at 1e12,
+    cressie_read(2) +33% (adversarial review). Computed around f'(1) it equals the closed
+    forms to the values' rounding and never exceeds E V."""
+    mu = np.array([[0.2, 0.5, 0.3], [0.6, 0.1, 0.3]])
+    v = np.array([1.0, 2.0, 3.0]) * scale
+    E = FactorExpectation(mu)
+    ev = mu @ v
+    for div, closed in ((KL, kl_regularized(E, v, lam)),
+                        (CHI2, chi2_regularized(E, v, lam)),
+                        (cressie_read(2.0), chi2_regularized(E, v, lam / 2.0))):
+        got = f_regularized(E, v, lam, div)
+        np.testing.assert_allclose(got, closed, rtol=1e-12, err_msg=div.name)
+        assert np.all(got <= ev), div.name
+
+
+def test_general_f_is_insensitive_to_an_ulp_in_the_row_sums():
+    """The bound on alpha used a right secant with step 1e-7, which turned a 1-ulp change of
+    the row sums (stored column sums against recomputed ones) into 1e-9 of the result: fits of
+    the same data from memory and from a file differed by 3e-9 (Hellinger). The built-ins now
+    give f'_+ exactly."""
+    rng = np.random.default_rng(3)  # the old code: 4.1e-9 (Hellinger)
+    phi = rng.dirichlet(np.full(8, 0.5), size=300)
+    v = rng.uniform(0.0, 2.0, 300)
+
+    class Shifted(RidgeExpectation):
+        def total_weights(self):
+            return super().total_weights() * (1.0 + 2.0**-52)
+
+    E = RidgeExpectation(phi, cholesky_gram(phi, 0.96))
+    F = Shifted(phi, cholesky_gram(phi, 0.96))
+    for div in (HELLINGER, cressie_read(2.0), cressie_read(0.5), KL):
+        a, b = f_regularized(E, v, 0.358, div), f_regularized(F, v, 0.358, div)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-13, err_msg=div.name)

@@ -339,34 +339,45 @@ def f_regularized(
     need not be concave). ``v_min`` is the minimum of V over all states (it matters only when
     f grows linearly, e.g. TV and Hellinger); None takes the minimum of ``v``. With a
     true-model operator this equals the closed forms (TV, KL, chi^2).
+
+    Computed around the tangent at ``s0 = f'(1)`` (:attr:`FDivergence.centre`): with ``alpha =
+    V_min + lam s0 + beta`` the objective is ``E_i V - lam E_i[r((beta + V_min - V)/lam)]``,
+    ``r`` the conjugate's remainder (:meth:`FDivergence.conjugate_remainder`, ``>= 0``), so
+    no two terms of size ``lam`` cancel (before: ``s_i alpha - lam E_i[f*]``, which lost
+    ``lam / |V|`` of the digits: KL as an FDivergence 3.4e-7 above ``E V`` at ``lam = 1e4`` on
+    values of 1e-6, -100% at 1e12) and a distribution's value never exceeds ``E V``.
     """
     v = np.asarray(v, dtype=float)
     floor = float(np.min(v)) if v_min is None else min(float(v_min), float(np.min(v)))
-    top = float(np.max(v))
+    spread = float(np.max(v)) - floor
     s_lo, s_hi = divergence.slope_at_one
-    lo = floor + lam * s_lo
-    hi = top + lam * s_hi
+    s0 = divergence.centre
+    # beta = alpha - floor - lam s0: the interval of the docstring, relative to that origin
+    lo = lam * (s_lo - s0)
+    hi = spread + lam * (s_hi - s0)
     if np.isfinite(divergence.domain_max):
-        edge = floor + lam * divergence.domain_max
+        edge = lam * (divergence.domain_max - s0)
         if divergence.domain_open:
-            edge -= 1e-12 * max(1.0, abs(edge))
+            edge -= 1e-12 * max(1.0, abs(edge), abs(floor))
         hi = min(hi, edge)
     m = E.matrix
     d = m.shape[0]
     s = row_sums(E)
-    hi = np.maximum(np.minimum(hi, _mass_bound(m, s, v, lam, divergence)), lo)
+    hi = np.maximum(np.minimum(hi, _mass_bound(m, s, v, lam, divergence, floor, s0)), lo)
+    plain = m @ v
+    y = floor - v  # beta + y is lam times the conjugate's argument minus s0
 
     # A point with no weight contributes nothing, even where f* is infinite there (else
     # 0 * inf = NaN would hide every alpha above V_j + lam dom of a point off the support).
     off = m == 0.0
     off = off if off.any() else None
 
-    def objective(alpha):
+    def objective(beta):
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            fs = divergence.conjugate((alpha[:, None] - v[None, :]) / lam)
+            rem = divergence.conjugate_remainder((beta[:, None] + y[None, :]) / lam)
             if off is not None:
-                fs = np.where(off, 0.0, fs)
-            val = s * alpha - lam * np.einsum("ij,ij->i", m, fs)
+                rem = np.where(off, 0.0, rem)
+            val = plain - lam * np.einsum("ij,ij->i", m, rem)
         return np.where(np.isfinite(val), val, -np.inf)
 
     invphi = (np.sqrt(5.0) - 1.0) / 2.0
@@ -376,8 +387,9 @@ def f_regularized(
     x2 = a + invphi * (bnd - a)
     f1, f2 = objective(x1), objective(x2)
     best_f = np.maximum.reduce([objective(a), objective(bnd), f1, f2])
+    scale = 1.0 + spread + abs(floor)
     for _ in range(max_iter):
-        if np.all(bnd - a <= xtol * (1.0 + np.abs(a))):
+        if np.all(bnd - a <= xtol * scale):
             break
         go_left = f1 >= f2  # keep [a, x2]
         a = np.where(go_left, a, x1)
@@ -394,12 +406,14 @@ def f_regularized(
     return best_f
 
 
-def _mass_bound(m, s, v, lam, divergence, rel=1e-7):
-    """``min_j V_j + lam f'_+(max(s_i / |M_ij|, 1))`` per factor (``+inf`` where it says
-    nothing).
+def _mass_bound(m, s, v, lam, divergence, floor, s0):
+    """``min_j (V_j - floor) + lam (f'_+(max(s_i / |M_ij|, 1)) - s0)`` per factor: the bound
+    ``alpha* <= V_j + lam f'_+(1/p_j)`` measured from ``floor + lam s0`` (``+inf`` where it
+    says nothing).
 
-    The right secant ``(f(y (1 + rel)) - f(y)) / (y rel) >= f'_+(y)`` (f convex) keeps the
-    bound valid; points with no weight, non-positive ``s_i`` and non-finite secants are
+    ``f'_+`` is the divergence's right derivative (:meth:`FDivergence.right_derivative`:
+    exact for the built-ins, else a right secant, an upper bound as f is convex, so the
+    bound stays valid); points with no weight, non-positive ``s_i`` and non-finite slopes are
     skipped (a looser interval, never a wrong one).
     """
     absm = np.abs(m)
@@ -409,7 +423,6 @@ def _mass_bound(m, s, v, lam, divergence, rel=1e-7):
     with np.errstate(all="ignore"):
         # 1/p_j >= 1 for a distribution; signed weights can have |M_ij| > s_i.
         y = np.maximum(np.where(use, s[:, None] / np.where(use, absm, 1.0), 1.0), 1.0)
-        slope = (divergence.f(y * (1.0 + rel)) - divergence.f(y)) / (y * rel)
-        cap = v[None, :] + lam * slope
+        cap = (v[None, :] - floor) + lam * (divergence.right_derivative(y) - s0)
     cap = np.where(use & np.isfinite(cap), cap, np.inf)
     return cap.min(axis=1)
