@@ -79,6 +79,7 @@ from ._fields import (  # noqa: F401
     FileField,
     MappedField,
     _float_dtype,
+    widen_range,
 )
 from ._format import FORMAT_VERSION, GRAM_FILE, KIND, MANIFEST, SUMS_FILE  # noqa: F401
 from ._next import MapNext, NextStates, StoredNext, TableNext  # noqa: F401
