@@ -57,7 +57,8 @@ def check_radius(rho, horizon: int, n_features: int, name: str = "rho") -> np.nd
         raise ValueError(f"{name} must be finite, got {int((~np.isfinite(arr)).sum())} bad entries")
     if np.any(arr < 0):
         raise ValueError(
-            f"{name} must be >= 0 (0 = no uncertainty for that factor), got min {plain(arr.min())!r}"
+            f"{name} must be >= 0 (0 = no uncertainty for that factor), got min "
+            f"{plain(arr.min())!r}"
         )
     return arr
 

@@ -309,7 +309,7 @@ def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=Non
     >>> PEVI().fit(ds)
     Traceback (most recent call last):
     ...
-    ValueError: rewards reach 3.0 > r_max=1.0; pass r_max=3.0 or larger (every estimator clips Q_h to [0, (H - h) r_max])
+    ValueError: rewards reach 3.0 > r_max=1.0; pass r_max=3.0 or larger (every estimator ...
     >>> PEVI(r_max=3.0).fit(ds).weights_.shape
     (2, 2)
     """
