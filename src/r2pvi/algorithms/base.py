@@ -146,7 +146,12 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         return self._run_engine(dataset, params)
 
     def fit(self, dataset: OfflineDataset):
-        """Learn the weights of every step from ``dataset``; returns ``self``."""
+        """Learn the weights of every step from ``dataset``; returns ``self``.
+
+        Raises ``ValueError`` when the rewards (or those of ``reward_weights``) leave
+        ``[0, r_max]``, naming the ``r_max`` to pass or the shift to apply (see
+        :func:`check_reward_range`): the clip of ``Q_h`` to ``[0, (H - h) r_max]`` would
+        otherwise change the values silently."""
         if not isinstance(dataset, OfflineDataset):
             raise TypeError(
                 f"fit expects an r2pvi.OfflineDataset, got {type(dataset).__name__}; build one "
