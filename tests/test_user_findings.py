@@ -206,6 +206,8 @@ def test_estimator_save_never_writes_over_a_dataset_or_a_directory(tmp_path):
     np.savez(foreign, a=np.ones(3))
     with pytest.raises(FileExistsError, match="r2pvi did not write"):
         est.save(foreign)
+    (tmp_path / "empty.npz").touch()  # an empty file (tempfile's) holds nothing to lose
+    assert r2pvi.load(est.save(tmp_path / "empty.npz")).n_actions_ == A
     model = est.save(tmp_path / "model.npz")
     PEVI(beta=0.5).fit(data).save(model)  # a model replaces a model
     assert r2pvi.load(model).beta == 0.5

@@ -64,8 +64,8 @@ def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta:
     The write goes to a temporary file next to ``path``, then replaces ``path`` atomically.
     ``path`` gets the suffix ``.npz`` when it has none. A directory is never written over.
     An existing file is refused with ``overwrite=False``, and with ``overwrite=True`` too
-    unless it is an r2pvi file of the same ``kind`` (a model replaces a model; a save never
-    destroys a dataset or a file r2pvi did not write).
+    unless it is an r2pvi file of the same ``kind`` or empty (a model replaces a model; a
+    save never destroys a dataset or a file r2pvi did not write).
     """
     given = Path(os.fspath(path))
     path = given if given.suffix == ".npz" else given.with_name(given.name + ".npz")
@@ -82,7 +82,7 @@ def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta:
         if not overwrite:
             raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
         held = _held_kind(path)
-        if held != kind:
+        if held != kind and path.stat().st_size > 0:  # an empty file holds nothing to lose
             holds = ("a file r2pvi did not write" if held is None
                      else f"{_what(held)} (kind {held!r})")
             raise FileExistsError(

@@ -161,7 +161,6 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
     return acc[4], acc[5], any_known, unit, (float(low), float(high))
 
 
-
 def _counted(exc: ValueError, phi, rewards, next_values, chunk) -> ValueError:
     """The error of one chunk, with the count of bad entries over the whole field."""
     msg = str(exc)

@@ -206,6 +206,8 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
     the next step's taken-action features (:class:`BehaviourNext`)."""
     path = Path(os.fspath(path))
     next_form = _next_form(next_form)
+    if path.exists() and not overwrite:  # before any work (checked again at the rename)
+        raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
     store = np.dtype(dtype) if dtype is not None else np.dtype(
         np.float32 if source.phi.dtype == np.float32 else np.float64)
     if store not in (np.float32, np.float64):
