@@ -286,6 +286,49 @@ def test_kl_ball_centered_ridge_estimate_matches_a_dense_search(seed):
     np.testing.assert_allclose(got, best, atol=1e-6)
 
 
+def normalized_objective(E, v, b, rho, v_max):
+    """DRVI-L's default estimate per unit of row mass at every ``b (J,)``: (d, J) values of
+    -b log(E(e^{-V/b}) / s) - b rho with s = E(1) (computed shifted by min v), the log
+    floored at Jensen's -m/(s b), m = min(E(v), V_max) the plain estimate; -inf where
+    E(e^{-V/b}) <= 0 (then the floor)."""
+    s = E(np.ones_like(v))[:, None]
+    c = v.min()  # in the log domain shifted by the least value (no underflow at small b)
+    est = E(np.exp(-(v[:, None] - c) / b[None, :])) / s
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_u = np.where(est > 0, -c / b + np.log(np.where(est > 0, est, 1.0)), -np.inf)
+    m = np.minimum(E(v), v_max)[:, None] / s
+    return -b * np.maximum(log_u, -m / b) - b * rho[:, None]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_kl_ball_normalized_ridge_estimate_matches_a_dense_search(seed):
+    """The normalized estimate is s_i times the sup over b of the row-normalized objective
+    (b_min=None); values far from 0 (where Ma et al.'s centering is off) for seeds 2, 3."""
+    rng, E = random_ridge(seed, 150, 5, seed % 2 == 1, signed=seed == 3)
+    v = rng.uniform(0.0, 4.0, size=150) + (3.0 if seed >= 2 else 0.0)
+    rho = rng.uniform(0.01, 1.0, size=5)
+    s = E(np.ones(150))
+    got = kl_constrained(E, v, rho, v_max=8.0, normalized=True)
+    # the solver's search range of log b: where the floor binds as b -> 0 (signed weights at
+    # the least value) the sup cap - b rho is approached at its lower end, 1e-9 max|v|
+    ts = np.linspace(np.log(1e-9 * np.abs(v).max()), np.log(5e3), 4000)
+    dense = normalized_objective(E, v, np.exp(ts), rho, 8.0)  # (d, 4000)
+    best = dense.max(axis=1)
+    for i, k in enumerate(dense.argmax(axis=1)):  # a local grid around each best cell
+        local = np.linspace(ts[max(k - 1, 0)], ts[min(k + 1, ts.size - 1)], 4001)
+        best[i] = max(best[i], normalized_objective(E, v, np.exp(local), rho, 8.0)[i].max())
+    cap = np.minimum(E(v), 8.0)
+    want = np.minimum(np.where(s > 0, s * best, cap), cap)
+    assert np.all(got >= want - 1e-9)
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def test_kl_ball_normalized_refuses_centered_too():
+    rng, E = random_ridge(0, 20, 3, False)
+    with pytest.raises(ValueError, match="not both"):
+        kl_constrained(E, rng.random(20), 0.1, centered=True, normalized=True)
+
+
 def test_kl_ball_centered_equals_plain_for_distributions():
     rng, mu = random_factors(5, 3, 6, True)
     v = rng.uniform(0.0, 10.0, size=6)

@@ -95,6 +95,30 @@ def test_drvil_on_the_issue_mdp_stays_below_the_plain_estimate_and_near_the_exac
         np.testing.assert_allclose(w, exact, atol=0.03)
 
 
+def shrinkage_mdp():
+    """6 states, 3 actions, d = 3, H = 3, values far from 0 (V_2 in [0.73, 0.80])."""
+    rng = np.random.default_rng(1)
+    S, A, d, H = 6, 3, 3, 3
+    return FiniteLinearMDP(rng.dirichlet(np.ones(d), size=(S, A)), rng.uniform(size=(H, d)),
+                           rng.dirichlet(np.ones(S), size=(H, d)), initial=np.ones(S) / S)
+
+
+def test_drvil_default_form_has_no_ridge_shrinkage_bias():
+    """Ma et al.'s centering (form="ma") leaves the shrinkage's weight 1 - s_i at V = 0: with
+    gamma = 1 the step-1 weights fell 0.012-0.024 below the exact KL-ball values (below
+    min V_2 = 0.727), whatever K. The default (row-normalized) form is within 1e-3."""
+    env, rho = shrinkage_mdp(), 0.3
+    v2 = (env.phi @ env.theta[2]).max(axis=1)
+    exact = kl_constrained(FactorExpectation(env.mu[1]), v2, rho)
+    ds = env.collect(5000, seed=0)
+    kw = {"beta": 0.0, "reward_weights": env.theta}
+    new = DRVIL(rho, **kw).fit(ds).weights_[1] - env.theta[1]
+    old = DRVIL(rho, form="ma", **kw).fit(ds).weights_[1] - env.theta[1]
+    np.testing.assert_allclose(new, exact, atol=1e-3)
+    assert np.all(new >= v2.min() - 1e-3)
+    assert np.max(np.abs(old - exact)) > 0.01  # the bias the default form removes
+
+
 def test_drvil_is_continuous_at_rho_zero():
     """Old code: DRVIL(1e-12) jumped by 1.7-2.9 above DRVIL(0) (the artefact at b -> 0)."""
     for env, K in ((issue_mdp(), 2000), (SimulatedLinearMDP(), 100)):

@@ -36,21 +36,28 @@ def auto_b_min(v: np.ndarray, n_samples: int) -> float | None:
     return spread / math.log(max(int(n_samples), 3))
 
 
-class KLBallRule(StepRule):
-    """KL ball (Ma et al. 2022, DRVI-L): per factor, ``sup_{b >= b_min} -b log(1 + clip(
-    [Lambda^-1 sum phi (e^{-V/b} - 1)]_i, e^{-m_i/b} - 1, 0)) - b rho_{h,i}``, ``m_i`` the
-    plain ridge estimate clipped to the step's value range (see
-    :func:`~r2pvi.duals.kl_constrained`)."""
+DRVIL_FORMS = ("normalized", "ma")
 
-    def __init__(self, rho, b_min="auto"):
+
+class KLBallRule(StepRule):
+    """KL ball (DRVI-L): per factor, ``sup_{b >= b_min} -b log u_i(b) - b rho_{h,i}`` with
+    ``u_i(b)`` the ridge estimate of ``E_i[e^{-V/b}]``, floored at ``e^{-m_i/b}``, ``m_i`` the
+    plain ridge estimate clipped to the step's value range. ``form="normalized"``: ``s_i``
+    times the dual under the row-normalized weights (``s_i = [Lambda^-1 sum phi]_i``);
+    ``form="ma"``: Ma et al. 2022's ``u_i = 1 + clip([Lambda^-1 sum phi (e^{-V/b} - 1)]_i,
+    e^{-m_i/b} - 1, 0)`` (see :func:`~r2pvi.duals.kl_constrained`)."""
+
+    def __init__(self, rho, b_min="auto", form="normalized"):
         self.rho = rho  # (H, d)
         self.b_min = b_min  # "auto", a positive float or None
+        self.form = form
 
     def __call__(self, E, v, ctx: StepContext):
         b_min = auto_b_min(v, E.n_points) if self.b_min == "auto" else self.b_min
         rho = self.rho[ctx.h] if ctx.dims is None else self.rho[ctx.h][ctx.dims]
+        ma = self.form == "ma"
         return kl_constrained(E, v, rho, v_range=step_value_range(v, ctx),
-                              centered=True, b_min=b_min)
+                              centered=ma, normalized=not ma, b_min=b_min)
 
     def factor_params(self, h):
         return self.rho[h]
@@ -81,11 +88,13 @@ class DRVIL(LinearEstimator):
     The d-DRMDP KL baseline of the paper (Ma et al. 2022): ``Q_h = clip(phi^T (theta_h +
     w_h) - Gamma_h(phi), 0, (H - h) r_max)`` where ``w_h,i`` estimates
     ``inf {E_mu V_{h+1} : D_KL(mu || mu0_{h,i}) <= rho_{h,i}}`` through the dual
-    ``sup_{b >= b_min} -b log E_i[e^{-V/b}] - b rho_{h,i}``. As in Ma et al., the ridge
-    regression estimates ``E_i[e^{-V/b}] - 1`` (regressing ``e^{-V/b} - 1``, so the estimate
-    shrinks towards 1), clipped so that its log is defined; the 1-D problem in ``b`` is solved
-    to machine precision for all factors at once (see :func:`~r2pvi.duals.kl_constrained`
-    with ``centered=True``).
+    ``sup_{b >= b_min} -b log E_i[e^{-V/b}] - b rho_{h,i}``. By default (``form="normalized"``)
+    each factor is ``s_i`` times that dual under its row-normalized ridge weights (``s_i`` their
+    sum, below 1 by the ridge shrinkage), as R2PVI-KL's default form; ``form="ma"`` is Ma et
+    al.'s estimate, the regression of ``e^{-V/b} - 1`` (the estimate shrinks towards 1, i.e. the
+    leftover weight ``1 - s_i`` sits at ``V = 0``, which biases the result downwards, below every
+    value, where V is far from 0). The 1-D problem in ``b`` is solved to machine precision for
+    all factors at once (see :func:`~r2pvi.duals.kl_constrained`).
 
     Numerical guarantees (any data, also signed ridge weights): each ``w_h,i`` is finite and
     lies in ``[0, m]``, ``m`` the plain ridge estimate of ``E_i V_{h+1}`` clipped to
@@ -121,6 +130,11 @@ class DRVIL(LinearEstimator):
         mass on the lowest values can get its plain estimate instead of a robust one (the
         ridge estimate of ``E[e^{-V/b}]`` crosses 0 as ``b -> 0``). None searches
         ``b -> 0`` (Ma et al.'s estimator without the assumption).
+    form : {"normalized", "ma"}, default "normalized"
+        How the ridge regression estimates ``E_i[e^{-V/b}]``: ``s_i`` times the estimate
+        under the row-normalized weights (no ridge shrinkage bias), or Ma et al.'s regression
+        of ``e^{-V/b} - 1`` (:func:`~r2pvi.duals.kl_constrained`, ``normalized=`` /
+        ``centered=``). The same for distributions.
     time_homogeneous : bool, default False
         Pooled steps: every step's regressions use the transitions of all H steps, with one
         Gram matrix factored once (per-step work: next-state values and regressions). Valid
@@ -149,7 +163,7 @@ class DRVIL(LinearEstimator):
     """
 
     def __init__(self, rho, *, beta=1.0, gamma=1.0, penalty="l1", reward_weights=None,
-                 r_max=1.0, b_min="auto", time_homogeneous=False):
+                 r_max=1.0, b_min="auto", form="normalized", time_homogeneous=False):
         self.rho = rho
         self.beta = beta
         self.gamma = gamma
@@ -157,11 +171,14 @@ class DRVIL(LinearEstimator):
         self.reward_weights = reward_weights
         self.r_max = r_max
         self.b_min = b_min
+        self.form = form
         self.time_homogeneous = time_homogeneous
 
     def _validate_extra(self, dataset):
+        if self.form not in DRVIL_FORMS:
+            raise ValueError(f"form must be one of {DRVIL_FORMS}, got {self.form!r}")
         return {"rho": check_radius(self.rho, dataset.horizon, dataset.n_features),
-                "b_min": check_b_min(self.b_min)}
+                "b_min": check_b_min(self.b_min), "form": self.form}
 
     def _make_rule(self, params):
-        return KLBallRule(params["rho"], params["b_min"])
+        return KLBallRule(params["rho"], params["b_min"], params["form"])

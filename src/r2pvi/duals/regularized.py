@@ -76,12 +76,15 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     ``-lam log s_i`` that grows without bound with ``lam``.
 
     ``v_max`` is the upper bound on V (the floor ``exp(-V_max/lam)`` of the paper's form, a cap
-    ``w_i <= V_max`` in both forms, reached when the estimated moment is <= 0); None takes the
-    maximum of ``v``. ``extent``: ``(min v, max v)`` when already known
-    (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``. Computed in
-    the log domain, shifted by the minimum value, so it is
-    finite and exact for ``lam`` from 1e-3 to 1e3 and beyond; factors whose shifted estimate
-    underflows are recomputed by a sign-aware log-sum-exp over their explicit weights.
+    ``w_i <= V_max`` in both forms); None takes the maximum of ``v``. Where the estimated
+    moment is <= 0 (signed ridge weights; the formula's value is ``+inf``) the paper's form
+    gives ``V_max``, the normalized form the plain ridge estimate ``E_i(v)`` (capped at
+    ``V_max``): the value of the objective at ``mu = mu0``, an upper bound of the exact dual,
+    rather than the most optimistic value there is. ``extent``: ``(min v, max v)`` when
+    already known (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``.
+    Computed in the log domain, shifted by the minimum value, so it is finite and exact for
+    ``lam`` from 1e-3 to 1e3 and beyond; factors whose shifted estimate underflows are
+    recomputed by a sign-aware log-sum-exp over their explicit weights.
 
     Examples
     --------
@@ -153,8 +156,13 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
         near_one = u > 0.5 * safe_s
         log_norm[near_one] = np.log1p(um[near_one] / safe_s[near_one])
         w = s * (shift - lam * log_norm)
-    if not live.all():  # no positive total weight: nothing to normalize, the plain estimate
-        w = np.where(live, w, E(v))
+    # No positive total weight (nothing to normalize), or an estimated moment <= 0 (the
+    # formula's value is +inf): the plain estimate E_i(v), the value of mu = mu0, which bounds
+    # the exact dual from above (the step's bound alone, the paper's floor, is the most
+    # optimistic value there is).
+    blind = ~live | (log_norm == -np.inf)
+    if blind.any():
+        w = np.where(blind, E(v), w)
     return np.minimum(w, upper)
 
 
@@ -247,17 +255,24 @@ def chi2_regularized(
     lo_v, hi_v = value_extent(v) if extent is None else extent
     c = lo_v if center else 0.0
     totals = {}
+    u = v - c if center else v
     # (v - c) rounds monotonically: its extent is the extent of v, shifted and rounded
-    w = _chi2_core(E, v - c if center else v, lam, mean_clip, second_clip, method, totals,
-                   (lo_v - c, hi_v - c))
+    w = _chi2_core(E, u, lam, mean_clip, second_clip, method, totals, (lo_v - c, hi_v - c))
+    # At most the plain estimate E_i(v), the objective's value at mu = mu0 (the exact dual
+    # never exceeds E V; with signed ridge weights the estimated variance can be negative and
+    # the maximum above it): E_i(u) and E_i(1) from the block sums when the branch and bound
+    # ran (no further pass), shifted back like w (so constant values stay exact).
+    exact = E.nonnegative and mean_clip is None and second_clip is None
+    plain = None if exact else (totals["mean"] if "mean" in totals else E(u))
     if center and c != 0.0:
-        if E.nonnegative:
-            w = w + c
-        else:  # E_i(1): from the branch and bound's block sums when it ran (no further pass)
-            w = w + c * (totals["mass"] if "mass" in totals else row_sums(E))
-    if E.nonnegative and mean_clip is None and second_clip is None:
-        w = _within_exact_chi2_bounds(E, v, lam, w)
-    return w
+        mass = 1.0 if E.nonnegative else (
+            totals["mass"] if "mass" in totals else row_sums(E))
+        w = w + c * mass
+        if plain is not None:
+            plain = plain + c * mass
+    if exact:
+        return _within_exact_chi2_bounds(E, v, lam, w)
+    return np.minimum(w, plain)
 
 
 def _chi2_core(E, u, lam, mean_clip, second_clip, method, totals=None, extent=None):
