@@ -316,7 +316,7 @@ def test_drvil_has_no_variance_aware_or_v_min_parameter():
     with pytest.raises(TypeError):
         DRVIL(0.1, variance_aware=True)
     assert set(DRVIL(0.1).get_params()) == {"rho", "beta", "gamma", "penalty",
-                                            "reward_weights", "r_max", "b_min",
+                                            "reward_weights", "r_max", "b_min", "form",
                                             "time_homogeneous"}
 
 

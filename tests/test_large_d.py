@@ -397,18 +397,22 @@ def test_pooled_equals_per_step_when_H_is_1(name):
 
 @pytest.mark.parametrize("name", sorted(ESTIMATORS))
 def test_pooled_equals_per_step_when_every_step_sees_the_same_transitions(name):
-    """H copies of the same K transitions: the pooled Gram matrix is ``H (Phi^T Phi +
-    gamma/H I)``, so pooled (gamma, beta) is the per-step estimator with (gamma / H,
-    beta / sqrt(H)) — weights, penalties and Q-values (ties in every sorted dual)."""
+    """H copies of the same K transitions: pooled fits use steps 0 .. H-2 (P = H - 1 copies;
+    the last step's next states are not data), so the pooled Gram matrix is ``P (Phi^T Phi +
+    gamma/P I)`` and pooled (gamma, beta) is the per-step estimator with (gamma / P,
+    beta / sqrt(P)) — weights, penalties and Q-values (ties in every sorted dual)."""
     rng = np.random.default_rng(12)
     K, H, d = 25, 4, 6
+    P = engine.pooled_steps(H)
     phi1, r1, next1 = _data(rng, K, 1, d)
     phi, rewards, next_phi = (np.repeat(x, H, axis=1) for x in (phi1, r1, next1))
     ds = OfflineDataset.from_features(phi, rewards, next_phi)
-    pooled = _fit(ESTIMATORS[name], ds, gamma=0.8, time_homogeneous=True)
-    per_step = _fit(ESTIMATORS[name], ds, gamma=0.8 / H, beta=0.2 / np.sqrt(H))
+    # DRVI-L's b_min="auto" depends on the number of samples (P K pooled, K per step): fix it
+    extra = {"b_min": 0.05} if name == "drvil" else {}
+    pooled = _fit(ESTIMATORS[name], ds, gamma=0.8, time_homogeneous=True, **extra)
+    per_step = _fit(ESTIMATORS[name], ds, gamma=0.8 / P, beta=0.2 / np.sqrt(P), **extra)
     np.testing.assert_allclose(pooled.weights_, per_step.weights_, atol=1e-10)
-    np.testing.assert_allclose(pooled.gram_inv_diag_ * H, per_step.gram_inv_diag_, rtol=1e-10)
+    np.testing.assert_allclose(pooled.gram_inv_diag_ * P, per_step.gram_inv_diag_, rtol=1e-10)
     feat = _sparse_simplex(rng, (5, 2, d))
     for h in range(H):
         np.testing.assert_allclose(pooled.q_values(feat, h), per_step.q_values(feat, h),
@@ -450,7 +454,7 @@ def test_pooled_factors_one_gram_matrix(monkeypatch):
 
     monkeypatch.setattr(engine, "GramFactor", count)
     DRPVI(0.2).set_params(time_homogeneous=True).fit(ds)
-    assert calls == [(100, 8)]  # one factorization of all H K = 100 transitions
+    assert calls == [(80, 8)]  # one factorization of the (H - 1) K = 80 pooled transitions
     calls.clear()
     real_primal = engine._primal_factor  # per-step fits accumulate Lambda_h by chunk
 
@@ -467,17 +471,19 @@ def test_pooled_factors_one_gram_matrix(monkeypatch):
 
 
 def test_pooled_ridge_matches_a_brute_force_pooled_regression():
-    """PEVI with beta = 0 and pooled steps: w_h is the ridge regression, over all H K
-    transitions, of V_{h+1} at their next states (brute force, no engine)."""
+    """PEVI with beta = 0 and pooled steps: w_h is the ridge regression, over the (H - 1) K
+    transitions of steps 0 .. H-2, of V_{h+1} at their next states (brute force, no engine).
+    The last step's next states are not data: NaN there changes nothing."""
     rng = np.random.default_rng(14)
     K, H, d, A = 15, 3, 4, 2
     phi, rewards, next_phi = _data(rng, K, H, d, A)
+    next_phi[:, H - 1] = np.nan  # "ignored and may hold anything" (from_features)
     ds = OfflineDataset.from_features(phi, rewards, next_phi)
     est = PEVI(beta=0.0, gamma=0.5, time_homogeneous=True).fit(ds)
-    x = phi.transpose(1, 0, 2).reshape(-1, d)
-    nx = next_phi.transpose(1, 0, 2, 3).reshape(-1, A, d)
+    x = phi[:, :H - 1].transpose(1, 0, 2).reshape(-1, d)
+    nx = next_phi[:, :H - 1].transpose(1, 0, 2, 3).reshape(-1, A, d)
     inv = _lam_inv(x, 0.5)
-    theta = inv @ x.T @ rewards.T.reshape(-1)
+    theta = inv @ x.T @ rewards[:, :H - 1].T.reshape(-1)
     w = theta.copy()
     expected = [None] * H
     expected[H - 1] = theta
@@ -582,3 +588,24 @@ def test_sparse_feature_maps_give_sparse_episode_datasets():
     for est in (R2PVI("tv", 0.3, beta=0.05), PEVI(beta=0.1), DRPVI(0.2, beta=0.05)):
         w_dense = est.fit(dense).weights_.copy()
         np.testing.assert_allclose(est.fit(sparse).weights_, w_dense, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", ["pevi", "tv", "drvil"])
+def test_pooled_fits_ignore_the_last_steps_next_states(name, tmp_path):
+    """Row H-1 of the next-state data "is ignored and may hold anything" (from_features): a
+    pooled fit used it (NaN weights in memory, DRVI-L crashed, files' zeros gave other
+    numbers). Now memory with NaN there, memory with other values and the saved dataset
+    (which stores zeros) give the same fit."""
+    rng = np.random.default_rng(21)
+    K, H, d = 12, 3, 4
+    phi, rewards, next_phi = _data(rng, K, H, d)
+    a, b = next_phi.copy(), next_phi.copy()
+    a[:, H - 1] = np.nan
+    b[:, H - 1] = rng.random(b[:, H - 1].shape)
+    fits = [_fit(ESTIMATORS[name], OfflineDataset.from_features(phi, rewards, x),
+                 time_homogeneous=True) for x in (a, b)]
+    path = OfflineDataset.from_features(phi, rewards, a).save(tmp_path / "ds")
+    fits.append(_fit(ESTIMATORS[name], OfflineDataset.open(path), time_homogeneous=True))
+    assert np.all(np.isfinite(fits[0].weights_))
+    for other in fits[1:]:
+        np.testing.assert_allclose(other.weights_, fits[0].weights_, rtol=0, atol=1e-12)

@@ -16,8 +16,10 @@ For ``h = H-1, ..., 0`` the engine
 4. stores ``theta_h + w_h`` and what the penalty ``Gamma_h`` needs, which define
    ``Q_h = clip(phi^T (theta_h + w_h) - Gamma_h(phi), 0, (H - h) r_max)``.
 
-With ``time_homogeneous=True`` (pooled steps) every step regresses on the transitions of all
-steps with one Gram matrix factored once.
+With ``time_homogeneous=True`` (pooled steps) every step regresses on the transitions of
+steps ``0 .. H-2`` (all of them when ``H = 1``) with one Gram matrix factored once: the last
+step's next states are not part of a dataset (every constructor documents that row ``H-1`` of
+the next-state data is ignored; files store zeros there), so they never enter a fit.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ __all__ = [
     "penalty_values",
     "elliptical_norms",
     "q_values_from_model",
+    "pooled_steps",
     "PENALTIES",
 ]
 
@@ -513,12 +516,13 @@ def backward_induction(
         Known ``theta_h``; None estimates ``theta_h`` by ridge regression on the rewards.
     sample_weights : (H, n), optional
         Regression weights ``1 / sigma_h^2`` (variance-aware variants); None means 1.
-        ``n`` is K, or ``H K`` with ``time_homogeneous``.
+        ``n`` is K, or ``pooled_steps(H) K`` with ``time_homogeneous``.
     time_homogeneous : bool, default False
-        Pooled steps: every step regresses on the transitions of all steps, with ONE Gram
+        Pooled steps: every step regresses on the transitions of steps ``0 .. H-2``
+        (:func:`pooled_steps`; the last step's next states are not data), with ONE Gram
         matrix ``Lambda = sum_{h, tau} phi phi^T + gamma I`` factored once (once per step
         only when ``sample_weights`` differ by step); each step then computes only its
-        next-state values at all ``H K`` next states and its regressions. Valid when the
+        next-state values at the pooled next states and its regressions. Valid when the
         nominal dynamics (and rewards) do not depend on h.
     form : {"auto", "primal", "dual"}
         Factorization of each Gram matrix (see :class:`~r2pvi.duals.GramFactor`); "auto"
@@ -540,7 +544,7 @@ def backward_induction(
     moments = np.zeros((H, d, 2))
     # ---- data access: one step's arrays, or every step's pooled (the only data path here)
     pooled = _pooled_steps(dataset) if time_homogeneous else None
-    n_rows = dataset.n_trajectories * (H if time_homogeneous else 1)
+    n_rows = dataset.n_trajectories * (pooled_steps(H) if time_homogeneous else 1)
     next_state_values = np.zeros((H, n_rows))
     v_upper = H * r_max
     E = None
@@ -643,14 +647,26 @@ def _apply_rule(rule: StepRule, E: RidgeExpectation, factor: GramFactor, v, ctx:
     return w
 
 
+def pooled_steps(horizon: int) -> int:
+    """How many steps a time-homogeneous fit pools: ``0 .. H-2``, whose next states are data
+    (row ``H-1`` of the next-state data is ignored by every constructor, and files store zeros
+    there); the single step when ``H = 1`` (its next states are never used: ``V_H = 0``).
+
+    >>> pooled_steps(20), pooled_steps(1)
+    (19, 1)
+    """
+    return max(int(horizon) - 1, 1)
+
+
 def _pooled_steps(dataset: OfflineDataset):
-    """Every step's transitions as one: ``(phi (H K, d), rewards (H K,), next_phi (H K, A, d),
-    next_values (H K, A) or None)``, step-major (row ``h K + tau``)."""
-    H = dataset.horizon
+    """The transitions of steps ``0 .. P-1`` (``P = pooled_steps(H)``) as one: ``(phi (P K,
+    d), rewards (P K,), next_phi (P K, A, d), next_values (P K, A) or None)``, step-major (row
+    ``h K + tau``)."""
+    P = pooled_steps(dataset.horizon)
     views = _pooled_views(dataset)
     if views is not None:
         return views
-    steps = [dataset.step(h) for h in range(H)]
+    steps = [dataset.step(h) for h in range(P)]
     if any(s[3] is not None for s in steps):
         A = dataset.n_actions
         known = np.concatenate([
@@ -678,9 +694,10 @@ def _pooled_views(dataset: OfflineDataset):
     if not all(a.dtype == np.float64 and a.flags.c_contiguous for a in (phi, next_phi)):
         return None
     H, K = phi.shape[:2]
+    n = pooled_steps(H) * K  # the first steps: a prefix of the step-major rows
     known = None
     if nxt.next_values is not None:
-        known = np.asarray(nxt.next_values.lazy(), dtype=float).reshape(H * K, -1)
-    rewards = np.asarray(src.rewards.lazy(), dtype=float).reshape(H * K)
-    return (phi.reshape(H * K, phi.shape[2]), rewards,
-            next_phi.reshape((H * K,) + next_phi.shape[2:]), known)
+        known = np.asarray(nxt.next_values.lazy(), dtype=float).reshape(H * K, -1)[:n]
+    rewards = np.asarray(src.rewards.lazy(), dtype=float).reshape(H * K)[:n]
+    return (phi.reshape(H * K, phi.shape[2])[:n], rewards,
+            next_phi.reshape((H * K,) + next_phi.shape[2:])[:n], known)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..data import OfflineDataset
-from ..engine import FittedModel
+from ..engine import FittedModel, pooled_steps
 from ..sparse import stack_rows
 
 __all__ = ["VarianceAwareMixin", "variance_weights"]
@@ -46,9 +46,10 @@ def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float
         raise ValueError("variance_weights needs the first pass's value moments: run "
                          "backward_induction(..., value_moments=True)")
     H, K = dataset.horizon, dataset.n_trajectories
-    n = first.next_state_values.shape[1]  # K, or H K for pooled steps (time_homogeneous)
+    n = first.next_state_values.shape[1]  # K, or P K for pooled steps (time_homogeneous)
     weights = np.ones((H, n))
-    pooled = stack_rows([dataset.step(h)[0] for h in range(H)]) if n != K else None
+    P = pooled_steps(H)  # pooled rows: steps 0 .. P-1 (P = 1: step 0's rows, as per step)
+    pooled = stack_rows([dataset.step(h)[0] for h in range(P)]) if n != K else None
     for h in range(H - 1):  # V_H = 0: sigma_{H-1}^2 = max(1, 0) = 1
         z = first.value_moments[h]  # (d, 2): ridge estimates of V_{h+1} and V_{h+1}^2
         pred = np.asarray(dataset.step_times(h, z) if pooled is None else pooled @ z)

@@ -79,7 +79,8 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         ``V_{h+1}``, whose estimated conditional variance weights a second pass
         (weighted Gram matrix, targets and penalty).
     time_homogeneous : bool, default False
-        Pooled steps: every step's regressions use the transitions of all H steps, with one
+        Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
+        last step's next states are not data), with one
         Gram matrix factored once (per-step work: next-state values and regressions). Valid
         only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
         e.g. a Gymnasium environment); False is the paper's per-step estimator.

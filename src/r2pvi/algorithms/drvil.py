@@ -136,7 +136,8 @@ class DRVIL(LinearEstimator):
         of ``e^{-V/b} - 1`` (:func:`~r2pvi.duals.kl_constrained`, ``normalized=`` /
         ``centered=``). The same for distributions.
     time_homogeneous : bool, default False
-        Pooled steps: every step's regressions use the transitions of all H steps, with one
+        Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
+        last step's next states are not data), with one
         Gram matrix factored once (per-step work: next-state values and regressions). Valid
         only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
         e.g. a Gymnasium environment); False is the paper's per-step estimator.
