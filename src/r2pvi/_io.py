@@ -32,16 +32,62 @@ def file_error(path, field: str | None, problem: str) -> FileFieldError:
     return FileFieldError(f"{where} {problem}")
 
 
-def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta: dict) -> Path:
+# What each kind of file holds and how to read it (for errors that name the right loader).
+_KINDS = {
+    "estimator": ("an estimator", "r2pvi.load(path) (or the estimator class's load)"),
+    "OfflineDataset": ("a dataset", "r2pvi.OfflineDataset.load(path)"),
+    "feature_map": ("a feature map", "r2pvi.features.load_feature_map(path)"),
+}
+
+
+def _what(kind) -> str:
+    return _KINDS[kind][0] if kind in _KINDS else f"a {kind!r}"
+
+
+def _held_kind(path: Path):
+    """The kind recorded in an existing r2pvi ``.npz`` file's header (reading that entry
+    only), or None when the file is not one."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            if _META_KEY not in npz.files:
+                return None
+            kind = json.loads(str(npz[_META_KEY])).get("kind")
+    except Exception:  # not a zip archive, damaged, not JSON, not a dict: not r2pvi's
+        return None
+    return kind if isinstance(kind, str) else None
+
+
+def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta: dict,
+             *, overwrite: bool = True) -> Path:
     """Write ``arrays`` and a JSON header ``{"kind", "format_version", **meta}`` to ``path``.
 
     The write goes to a temporary file next to ``path``, then replaces ``path`` atomically.
+    ``path`` gets the suffix ``.npz`` when it has none. A directory is never written over.
+    An existing file is refused with ``overwrite=False``, and with ``overwrite=True`` too
+    unless it is an r2pvi file of the same ``kind`` or empty (a model replaces a model; a
+    save never destroys a dataset or a file r2pvi did not write).
     """
-    path = Path(os.fspath(path))
-    if path.suffix != ".npz":
-        path = path.with_name(path.name + ".npz")
-    if path.is_dir():
-        raise IsADirectoryError(f"cannot save to {path}: it is a directory")
+    given = Path(os.fspath(path))
+    path = given if given.suffix == ".npz" else given.with_name(given.name + ".npz")
+    if given.is_dir() or path.is_dir():
+        where = given if given.is_dir() else path
+        what = (" (an r2pvi dataset directory)" if (where / "manifest.json").is_file()
+                else "")
+        suggestion = where.with_name(where.stem + "-" + kind.lower() + ".npz") if (
+            where.suffix == ".npz") else where.with_name(where.name + ".npz")
+        raise IsADirectoryError(
+            f"cannot save to {where}: it is a directory{what}; {_what(kind)} is saved to one "
+            f".npz file: pass a file path such as {str(suggestion)!r}")
+    if path.exists():
+        if not overwrite:
+            raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
+        held = _held_kind(path)
+        if held != kind and path.stat().st_size > 0:  # an empty file holds nothing to lose
+            holds = ("a file r2pvi did not write" if held is None
+                     else f"{_what(held)} (kind {held!r})")
+            raise FileExistsError(
+                f"{path} exists and holds {holds}: saving {_what(kind)} there would destroy "
+                "it; choose another path or remove the file first")
     header = {"kind": kind, "format_version": version, **meta}
     payload = {k: np.asarray(v) for k, v in arrays.items()}
     if _META_KEY in payload:
@@ -53,7 +99,10 @@ def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta:
             np.savez_compressed(fh, **payload)  # type: ignore[arg-type]
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            _place_new(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
@@ -61,9 +110,29 @@ def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta:
     return path
 
 
+def _place_new(tmp: Path, path: Path) -> None:
+    """Move ``tmp`` to ``path`` only if ``path`` does not exist, atomically where the file
+    system has hard links (a file created meanwhile is never replaced)."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path") from None
+    except OSError:  # no hard links here (some network or FAT file systems)
+        if path.exists():
+            raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path") \
+                from None
+        os.replace(tmp, path)
+        return
+    os.unlink(tmp)
+
+
 def _read(path: Path) -> tuple[dict[str, np.ndarray], str]:
     """Every array of the archive and the raw header text; bad archives -> FileFieldError."""
     if path.is_dir():
+        if (path / "manifest.json").is_file():
+            raise file_error(path, None, "is a dataset directory, not an r2pvi .npz file: "
+                             "open it with r2pvi.OfflineDataset.open(path) (lazily) or "
+                             "r2pvi.OfflineDataset.load(path) (into memory)")
         raise file_error(path, None, "is a directory, not an r2pvi .npz file")
     with open(path, "rb") as fh:
         magic = fh.read(4)
@@ -103,9 +172,12 @@ def load_npz(path, kind: str, max_version: int) -> tuple[dict[str, np.ndarray], 
         raise file_error(path, "header", f"is not valid JSON: {exc}") from None
     if not isinstance(header, dict):
         raise file_error(path, "header", f"must be a JSON object, got {type(header).__name__}")
-    if header.get("kind") != kind:
-        raise file_error(path, "kind", f"is {header.get('kind')!r}: the file does not hold a "
-                         f"{kind!r}")
+    held = header.get("kind")
+    if held != kind:
+        if held in _KINDS:
+            raise file_error(path, "kind", f"is {held!r}: the file holds {_what(held)}, not "
+                             f"{_what(kind)}; load it with {_KINDS[held][1]}")
+        raise file_error(path, "kind", f"is {held!r}: the file does not hold {_what(kind)}")
     version = header.get("format_version")
     if isinstance(version, bool) or not isinstance(version, int) or version < 1:
         raise file_error(path, "format_version", f"must be an integer >= 1, got {version!r}")

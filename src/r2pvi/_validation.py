@@ -7,6 +7,12 @@ import numbers
 import numpy as np
 
 
+def plain(value):
+    """``value`` for an error message: NumPy scalars as the Python number they hold, so a
+    message reads ``-0.1``, not ``np.float64(-0.1)``."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
 def as_float_array(x, name: str, ndim: int | None = None, allow_nan: bool = False,
                    copy: bool = True) -> np.ndarray:
     """Return ``x`` as a float64 array (a copy unless ``copy=False``, for callers that only
@@ -40,7 +46,7 @@ def check_scalar(
     kind = numbers.Integral if integer else numbers.Real
     if isinstance(value, bool) or not isinstance(value, kind):
         what = "an integer" if integer else "a real number"
-        raise TypeError(f"{name} must be {what}, got {value!r} ({type(value).__name__})")
+        raise TypeError(f"{name} must be {what}, got {plain(value)!r} ({type(value).__name__})")
     value = float(value) if not integer else int(value)  # type: ignore[call-overload]
     if not np.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value!r}")
@@ -54,10 +60,14 @@ def check_scalar(
 
 
 def check_choice(value, name: str, choices) -> str:
-    """Check that ``value`` is one of the allowed strings."""
-    if not isinstance(value, str) or value not in choices:
-        raise ValueError(f"{name} must be one of {sorted(choices)}, got {value!r}")
-    return value
+    """Check that ``value`` is one of the allowed strings, case-insensitively (as every
+    string option of r2pvi: ``"L1"`` is ``"l1"``, ``"KL"`` is ``"kl"``); returns the
+    canonical spelling, one of ``choices``."""
+    if isinstance(value, str):
+        for choice in choices:
+            if value.lower() == choice.lower():
+                return choice
+    raise ValueError(f"{name} must be one of {sorted(choices)}, got {plain(value)!r}")
 
 
 def as_index_array(x, name: str, n: int, ndim: int | None = None) -> np.ndarray:
@@ -73,5 +83,6 @@ def as_index_array(x, name: str, n: int, ndim: int | None = None) -> np.ndarray:
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
     if arr.size and (arr.min() < 0 or arr.max() >= n):  # two reductions, no temporaries
-        raise ValueError(f"{name} must lie in [0, {n}), got values from {arr.min()} to {arr.max()}")
+        raise ValueError(f"{name} must lie in [0, {n}), got values from {plain(arr.min())} to "
+                         f"{plain(arr.max())}")
     return arr

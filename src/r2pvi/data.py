@@ -21,7 +21,7 @@ import numpy as np
 
 from . import storage as _st
 from ._io import file_error, load_npz, save_npz
-from ._validation import as_float_array, as_index_array
+from ._validation import as_float_array, as_index_array, check_scalar
 from .storage import SimplexFeatureWarning
 
 __all__ = ["OfflineDataset", "SimplexFeatureWarning", "check_simplex_features"]
@@ -91,7 +91,7 @@ class OfflineDataset:
     @classmethod
     def from_features(
         cls, phi, rewards, next_phi, next_values=None, *, check_simplex: bool = True,
-        states=None, actions=None, next_states=None, dtype=None,
+        states=None, actions=None, next_states=None, dtype=None, reward_noise=0.0,
     ) -> OfflineDataset:
         """Build a dataset from feature arrays.
 
@@ -121,6 +121,12 @@ class OfflineDataset:
         dtype : {None, "float32", "float64"}, default None
             Storage type of the features: None keeps float32 or float64 input as it is (other
             numbers become float64). Fitting accumulates in float64 either way.
+        reward_noise : float, default 0.0
+            Standard deviation of zero-mean noise on the observed rewards, when they are
+            noisy samples of mean rewards in ``[0, r_max]`` (``FiniteLinearMDP`` with
+            ``reward_noise > 0``, the lower bound's hard instances): ``fit`` then lets samples
+            leave ``[0, r_max]`` by up to ``REWARD_NOISE_Z = 8`` standard deviations (see
+            :attr:`reward_noise`).
 
         Returns
         -------
@@ -165,19 +171,21 @@ class OfflineDataset:
                     f"next_values must have shape (K, H, A) = {(K, H, A)}, got "
                     f"{np.shape(next_values)}; use NaN where the value must be learned"
                 )
-        nonneg_phi, nonneg_next, any_known, unit = _st.validate_source(
+        nonneg_phi, nonneg_next, any_known, unit, reward_range = _st.validate_source(
             p, r, n, nv, check_simplex, stacklevel=3)
         extras = _check_extras(K, H, A, states=states, actions=actions, next_states=next_states)
         known = _st.ArrayField(nv) if nv is not None and any_known else None
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.StoredNext(_st.ArrayField(n), known, nonneg_next),
-                                extras, nonneg_phi, unit_rows=unit)
+                                extras, nonneg_phi, unit_rows=unit,
+                                reward_range=reward_range,
+                                reward_noise=_check_noise(reward_noise))
         return cls(_source=source)
 
     @classmethod
     def from_next_state_table(
         cls, phi, rewards, next_states, table, known_values=None, *, check_simplex=True,
-        states=None, actions=None, dtype=None,
+        states=None, actions=None, dtype=None, reward_noise=0.0,
     ) -> OfflineDataset:
         """Build a dataset whose next states index a feature table (finite state spaces).
 
@@ -197,7 +205,7 @@ class OfflineDataset:
             MDP with features ``phi_h``: ``table[h] = phi_{h+1}``).
         known_values : array_like (S, A), optional
             Known action values by next state (NaN: learn), e.g. 0 at absorbing fail states.
-        check_simplex, states, actions, dtype
+        check_simplex, states, actions, dtype, reward_noise
             As in :meth:`from_features`.
 
         Examples
@@ -242,8 +250,8 @@ class OfflineDataset:
                 raise ValueError(f"known_values must have shape (S, A) = {(S, A)}, got {kt.shape}")
             if np.isnan(kt).all():
                 kt = None
-        nonneg_phi, _, _, unit = _st.validate_source(p, r, None, None, check_simplex,
-                                                     stacklevel=3)
+        nonneg_phi, _, _, unit, reward_range = _st.validate_source(
+            p, r, None, None, check_simplex, stacklevel=3)
         if check_simplex:
             used = tab if tab.ndim == 3 else tab[: max(H - 1, 1)]
             check_simplex_features(used, "table")
@@ -252,7 +260,8 @@ class OfflineDataset:
                                actions=actions, next_states=ix.T)
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi,
-                                unit_rows=unit)
+                                unit_rows=unit, reward_range=reward_range,
+                                reward_noise=_check_noise(reward_noise))
         return cls(_source=source)
 
     @classmethod
@@ -337,7 +346,8 @@ class OfflineDataset:
             check_simplex_features(first, "phi")
             if H > 1:
                 check_simplex_features(nxt.features(0, 0, _st.CHUNK), "next_phi")
-        return cls(_source=_st.StepSource(phi, _st.ArrayField(r), nxt, {}))
+        return cls(_source=_st.StepSource(phi, _st.ArrayField(r), nxt, {},
+                                          reward_range=(float(r.min()), float(r.max()))))
 
     @classmethod
     def from_dask(cls, phi, rewards, next_phi, next_values=None) -> OfflineDataset:
@@ -511,6 +521,7 @@ class OfflineDataset:
         """
         from .episodes import dataset_from_episodes
 
+        _check_map_actions(feature_map, n_actions)
         return dataset_from_episodes(episodes, feature_map, n_actions, horizon,
                                      reward_offset=reward_offset, check_simplex=check_simplex)
 
@@ -601,6 +612,45 @@ class OfflineDataset:
                 for _, _, rows in self._source.phi.chunks(h, self._source.chunk)
             )
         return self._nonnegative_phi
+
+    @property
+    def reward_range(self) -> tuple[float, float]:
+        """The rewards' ``(min, max)`` as Python floats: taken while the data was validated
+        (or recorded in a dataset directory's manifest), else read once from the rewards
+        alone, never the features; then kept. ``fit`` checks it against the estimator's
+        ``r_max``.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> ds = OfflineDataset.from_features(np.full((2, 3, 2), 0.5), [[0, 1, 2], [3, 4, 5]],
+        ...                                   np.full((2, 3, 1, 2), 0.5))
+        >>> ds.reward_range
+        (0.0, 5.0)
+        """
+        cached = getattr(self, "_reward_range", None)
+        if cached is None:
+            source = getattr(self, "_source", None)
+            if source is not None:
+                cached = source.reward_bounds()
+            else:  # datasets that keep their rewards themselves (sparse rows): (K, H)
+                r = np.asarray(self.rewards)
+                cached = (float(r.min()), float(r.max()))
+            self._reward_range = cached
+        return cached
+
+    @property
+    def reward_noise(self) -> float:
+        """Standard deviation of zero-mean noise on the observed rewards (0: exact rewards).
+
+        Set by ``reward_noise=`` of :meth:`from_features` and :meth:`from_next_state_table`
+        (``FiniteLinearMDP.collect`` passes its own); kept by :meth:`subset`, :meth:`save`
+        and :meth:`open`. ``fit`` checks the rewards against ``[0, r_max]`` up to
+        ``8 * reward_noise``: noisy samples of in-range mean rewards leave the range, a
+        wrong reward scale does not hide in the noise."""
+        source = getattr(self, "_source", None)
+        return 0.0 if source is None else source.reward_noise
 
     @property
     def has_known_values(self) -> bool:
@@ -694,8 +744,9 @@ class OfflineDataset:
              next_form: str = "full") -> Path:
         """Save in the on-disk format: a directory of step-major ``.npy`` files and a JSON
         manifest (format version 2), written in a temporary directory and renamed into
-        place. A path ending in ``.npz`` writes the legacy single-file format (version 1).
-        Returns the path written. Open it lazily with :meth:`open` (any size).
+        place. A path ending in ``.npz`` writes the legacy single-file format (version 1),
+        atomically too. An existing path (directory or file) is refused unless
+        ``overwrite=True``. Returns the path written. Open it lazily with :meth:`open` (any size).
 
         ``next_form="behaviour"`` stores the next-state features without each sample's row
         that equals the next step's taken-action features ``phi[k, h+1]`` (see
@@ -718,12 +769,12 @@ class OfflineDataset:
             if next_form != "full":
                 raise ValueError("the legacy .npz format stores next_phi whole: use a "
                                  "directory path for next_form='behaviour'")
-            return self._save_npz(p)
+            return self._save_npz(p, overwrite)
         dtype = None if dtype is None else _st._float_dtype(dtype)
         return _st.write_directory(self._source, p, dtype=dtype, overwrite=overwrite,
                                    next_form=next_form)
 
-    def _save_npz(self, path):
+    def _save_npz(self, path, overwrite: bool = False):
         arrays = {
             "phi": self.phi,
             "rewards": self.rewards,
@@ -735,7 +786,9 @@ class OfflineDataset:
             if value.dtype == object:
                 raise TypeError(f"cannot save {key!r}: object arrays are not supported")
             arrays["extra_" + key] = value
-        return save_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION, arrays, {})
+        meta = {"reward_noise": self.reward_noise} if self.reward_noise else {}
+        return save_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION, arrays, meta,
+                        overwrite=overwrite)
 
     @classmethod
     def open(cls, path, *, feature_map=None) -> OfflineDataset:
@@ -753,7 +806,7 @@ class OfflineDataset:
         if p.is_dir():
             src = _st.open_directory(p)
             return cls(_source=src.take(np.arange(src.n_trajectories)))
-        arrays, _ = load_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION)
+        arrays, header = load_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION)
         known = {"phi", "rewards", "next_phi", "next_values"}
         known |= {"extra_" + k for k in ("states", "actions", "next_states")}
         for name in sorted(known - set(arrays)):
@@ -770,6 +823,7 @@ class OfflineDataset:
                 arrays["next_phi"],
                 arrays["next_values"],
                 check_simplex=False,
+                reward_noise=header.get("reward_noise", 0.0),
                 **extras,
             )
         except (TypeError, ValueError) as exc:
@@ -804,6 +858,10 @@ def _readonly(a):
     return v
 
 
+def _check_noise(reward_noise) -> float:
+    return float(check_scalar(reward_noise, "reward_noise", low=0.0))
+
+
 def _check_feature_map(feature_map, n_actions) -> None:
     """A callable ``feature_map(states, actions) -> (n, d)`` and an integer ``n_actions >= 1``."""
     if not callable(feature_map):
@@ -812,3 +870,16 @@ def _check_feature_map(feature_map, n_actions) -> None:
         raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
     if n_actions < 1:
         raise ValueError(f"n_actions must be >= 1, got {n_actions}")
+    _check_map_actions(feature_map, n_actions)
+
+
+def _check_map_actions(feature_map, n_actions) -> None:
+    """``n_actions`` agrees with a feature map that records its own (``cross_actions``)."""
+    own = getattr(feature_map, "n_actions", None)
+    if (isinstance(own, int | np.integer) and not isinstance(own, bool)
+            and isinstance(n_actions, int | np.integer) and int(own) != int(n_actions)):
+        raise ValueError(
+            f"n_actions={int(n_actions)} disagrees with the feature map, built for "
+            f"n_actions={int(own)} ({type(feature_map).__name__}); pass n_actions={int(own)} "
+            f"or build the map with cross_actions(..., n_actions={int(n_actions)})"
+        )

@@ -350,7 +350,7 @@ def _reward_offset(reward_offset, rewards: np.ndarray) -> float:
             )
         return 0.0
     if isinstance(reward_offset, str):
-        if reward_offset != "auto":
+        if reward_offset.lower() != "auto":  # case-insensitive, as every string option
             raise ValueError(
                 f"reward_offset must be None, 'auto' or a number, got {reward_offset!r}"
             )

@@ -6,7 +6,7 @@ import numbers
 
 import numpy as np
 
-from .._validation import check_scalar
+from .._validation import check_scalar, plain
 
 __all__ = ["floor_value", "check_v_min", "check_radius", "check_flag"]
 
@@ -20,19 +20,20 @@ def floor_value(v_min, v: np.ndarray) -> float:
 def check_v_min(v_min) -> str | float:
     """Validate ``v_min``: the string "data" or a finite real number."""
     if isinstance(v_min, str):
-        if v_min != "data":
+        if v_min.lower() != "data":  # case-insensitive, as every string option
             raise ValueError(f"v_min must be 'data' or a number, got {v_min!r}")
         return "data"
     if isinstance(v_min, numbers.Real) and not isinstance(v_min, bool):
         return check_scalar(v_min, "v_min")
-    raise TypeError(f"v_min must be 'data' or a number, got {v_min!r}")
+    raise TypeError(f"v_min must be 'data' or a number, got {plain(v_min)!r}")
 
 
 def check_radius(rho, horizon: int, n_features: int, name: str = "rho") -> np.ndarray:
     """Uncertainty radii as an (H, d) array from a scalar, a (d,) vector or an (H, d) array."""
     if isinstance(rho, bool | str) or rho is None:
         raise TypeError(
-            f"{name} must be a number, a (d,) vector or an (H, d) array of radii, got {rho!r}"
+            f"{name} must be a number, a (d,) vector or an (H, d) array of radii, got "
+            f"{plain(rho)!r}"
         )
     if isinstance(rho, np.ndarray) and rho.dtype == object:
         raise TypeError(f"{name} must be a numeric array, got dtype object")
@@ -56,7 +57,8 @@ def check_radius(rho, horizon: int, n_features: int, name: str = "rho") -> np.nd
         raise ValueError(f"{name} must be finite, got {int((~np.isfinite(arr)).sum())} bad entries")
     if np.any(arr < 0):
         raise ValueError(
-            f"{name} must be >= 0 (0 = no uncertainty for that factor), got min {arr.min()!r}"
+            f"{name} must be >= 0 (0 = no uncertainty for that factor), got min "
+            f"{plain(arr.min())!r}"
         )
     return arr
 
@@ -64,5 +66,5 @@ def check_radius(rho, horizon: int, n_features: int, name: str = "rho") -> np.nd
 def check_flag(value, name: str) -> bool:
     """Validate a boolean switch (True/False or a NumPy bool)."""
     if not isinstance(value, bool | np.bool_):
-        raise TypeError(f"{name} must be True or False, got {value!r}")
+        raise TypeError(f"{name} must be True or False, got {plain(value)!r}")
     return bool(value)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._validation import check_choice
 from ..features.maps import as_feature_map
 
 __all__ = ["GreedyPolicy", "BEYOND_HORIZON"]
@@ -50,10 +51,7 @@ class GreedyPolicy:
                 f"the {type(estimator).__name__} is not fitted yet; call fit(dataset) before "
                 "as_policy(feature_map)"
             )
-        if beyond_horizon not in BEYOND_HORIZON:
-            raise ValueError(
-                f"beyond_horizon must be one of {BEYOND_HORIZON}, got {beyond_horizon!r}"
-            )
+        beyond_horizon = check_choice(beyond_horizon, "beyond_horizon", BEYOND_HORIZON)
         self.estimator = estimator
         self.n_actions = int(estimator.n_actions_)
         self.feature_map = as_feature_map(feature_map, self.n_actions)

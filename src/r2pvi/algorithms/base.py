@@ -16,12 +16,12 @@ import scipy.sparse as sp
 from .._compat import KeywordParams, SklearnCompatMixin, not_fitted_error
 from .._io import file_array, file_error, load_npz, save_npz
 from .._threads import limit_blas
-from .._validation import as_float_array, check_choice, check_scalar
+from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
 from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 
-__all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
+__all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY", "check_reward_range"]
 
 # Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
 # ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
@@ -119,7 +119,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         # --- time_homogeneous (issue 14/11): pooled steps, one Gram matrix for all steps
         value = getattr(self, "time_homogeneous", False)
         if not isinstance(value, bool | np.bool_):
-            raise TypeError(f"time_homogeneous must be True or False, got {value!r}")
+            raise TypeError(f"time_homogeneous must be True or False, got {plain(value)!r}")
         return bool(value)
 
     def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None,
@@ -146,7 +146,12 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         return self._run_engine(dataset, params)
 
     def fit(self, dataset: OfflineDataset):
-        """Learn the weights of every step from ``dataset``; returns ``self``."""
+        """Learn the weights of every step from ``dataset``; returns ``self``.
+
+        Raises ``ValueError`` when the rewards (or those of ``reward_weights``) leave
+        ``[0, r_max]``, naming the ``r_max`` to pass or the shift to apply (see
+        :func:`check_reward_range`): the clip of ``Q_h`` to ``[0, (H - h) r_max]`` would
+        otherwise change the values silently."""
         if not isinstance(dataset, OfflineDataset):
             raise TypeError(
                 f"fit expects an r2pvi.OfflineDataset, got {type(dataset).__name__}; build one "
@@ -155,6 +160,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         params = self._validate_common(dataset)
         params.update(self._validate_extra(dataset))
         params["time_homogeneous"] = self._time_homogeneous()
+        check_reward_range(dataset, params["r_max"], params["reward_weights"])
         with limit_blas():  # one BLAS thread by default: see r2pvi._threads
             model = self._fit_model(dataset, params)
         self._set_fitted(model, params, dataset.n_actions)
@@ -279,6 +285,93 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         return est
 
 
+# Rewards may pass the bounds [0, r_max] by this much relative rounding: r_max (1 + 1e-12),
+# and noisy rewards (OfflineDataset.reward_noise = sigma) by REWARD_NOISE_Z sigma more: a
+# Gaussian sample lies that far out with probability 1.2e-15.
+REWARD_RTOL = 1e-12
+REWARD_NOISE_Z = 8.0
+
+
+def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=None) -> None:
+    """Refuse rewards outside ``[0, r_max]`` (noisy ones beyond their noise, see
+    :attr:`~r2pvi.OfflineDataset.reward_noise`): every estimator clips ``Q_h`` to
+    ``[0, (H - h) r_max]`` (the paper's ``min{., H - h + 1}^+`` with rewards in [0, 1]), so
+    larger rewards would be cut off and negative ones lifted to 0, silently: constant Q and
+    an arbitrary policy when every reward is out of range.
+
+    The rewards' range is the dataset's :attr:`~r2pvi.OfflineDataset.reward_range` (taken
+    when the data was validated or written: no pass over the features). With
+    ``reward_weights`` the rewards are ``phi_h^T theta_h`` on the data: on simplex features
+    they lie in ``[min_i theta_hi, max_i theta_hi]``, which settles most steps without reading
+    a feature; other steps are computed (one product ``phi_h theta_h``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from r2pvi import OfflineDataset, PEVI
+    >>> ds = OfflineDataset.from_features(np.full((4, 2, 2), 0.5), np.full((4, 2), 3.0),
+    ...                                   np.full((4, 2, 1, 2), 0.5))
+    >>> PEVI().fit(ds)
+    Traceback (most recent call last):
+    ...
+    ValueError: rewards reach 3.0 > r_max=1.0; pass r_max=3.0 or larger (every estimator ...
+    >>> PEVI(r_max=3.0).fit(ds).weights_.shape
+    (2, 2)
+    """
+    tol = REWARD_RTOL * r_max
+    if reward_weights is None:
+        low, high = dataset.reward_range
+        what, where = "rewards", ""
+        noise = REWARD_NOISE_Z * dataset.reward_noise
+        if noise:
+            tol += noise
+            where = (f" (beyond the {REWARD_NOISE_Z:g} standard deviations of the dataset's "
+                     f"reward_noise={dataset.reward_noise!r})")
+    else:
+        low, high = _implied_reward_range(dataset, reward_weights, -tol, r_max + tol)
+        what, where = "the rewards phi_h^T theta_h of reward_weights", " on the data"
+    if low < -tol:
+        shift = -low
+        raise ValueError(
+            f"{what} go down to {low!r} < 0{where}, but every estimator clips Q_h to "
+            f"[0, (H - h) r_max], so the values would be wrong (all 0 if every reward is "
+            f"negative). Shift the rewards by c >= {shift!r}: add c to every reward and "
+            "(H - h - 1) c to known next_values (OfflineDataset.from_episodes(..., "
+            "reward_offset='auto') does both; the greedy policy is unchanged"
+            + ("; with simplex features adding c to every entry of reward_weights adds c to "
+               "every reward" if reward_weights is not None else "")
+            + f"), and pass r_max >= the largest shifted reward ({high + shift!r} for "
+            f"c = {shift!r})"
+        )
+    if high > r_max + tol:
+        raise ValueError(
+            f"{what} reach {high!r} > r_max={r_max!r}{where}; pass r_max={high!r} or larger "
+            "(every estimator clips Q_h to [0, (H - h) r_max])"
+        )
+
+
+def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: float):
+    """``(min, max)`` of ``phi_h^T theta_h`` over the taken actions, exact where it matters:
+    a step whose bound ``[min theta_h, max theta_h]`` (simplex rows) or ``0`` (``theta_h =
+    0``) lies in ``[low_ok, high_ok]`` is not read."""
+    source = getattr(dataset, "_source", None)
+    simplex = source is not None and source.unit_rows and source.nonnegative_phi is True
+    low, high = np.inf, -np.inf
+    for h in range(dataset.horizon):
+        t = theta[h]
+        if not t.any():
+            bounds = (0.0, 0.0)
+        elif simplex:
+            bounds = (float(t.min()), float(t.max()))
+        else:
+            bounds = (-np.inf, np.inf)
+        if not (low_ok <= bounds[0] and bounds[1] <= high_ok):
+            r = dataset._step_product(h, t)
+            bounds = (float(r.min()), float(r.max())) if r.size else (0.0, 0.0)
+        low, high = min(low, bounds[0]), max(high, bounds[1])
+    return low, high
+
+
 def _jsonable(name, value):
     from ..duals.fdivergence import FDivergence, get_divergence
 
@@ -363,7 +456,7 @@ def load_estimator(path):
     inv_diag = file_array(path, arrays, "gram_inv_diag_", shape=(H, d))
     if np.any(inv_diag <= 0):
         raise file_error(path, "gram_inv_diag_", "must be > 0 (the diagonal of Lambda_h^-1), "
-                         f"got min {inv_diag.min()!r}")
+                         f"got min {plain(inv_diag.min())!r}")
     try:  # the parameters go through fit's own checks
         checked = est._validate_common(_Shape(H, d))
         checked.update(est._validate_extra(_Shape(H, d)))

@@ -321,7 +321,7 @@ class FiniteLinearMDP:
             phi, rewards, next_states, table,
             self.known_values if self._fail_states else None,
             check_simplex=False,  # validated in the constructor
-            states=states, actions=actions,
+            states=states, actions=actions, reward_noise=self._reward_noise,
         )
 
     # ------------------------------------------------------------------ ecosystem

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from ..envs.collect import run_episodes
@@ -50,7 +52,7 @@ def evaluate_policy(env, policy, n_episodes: int, *, seed=None, max_steps=None, 
     -------
     mean : float
     standard_error : float
-        ``std(returns, ddof=1) / sqrt(n)`` (NaN for one episode).
+        ``std(returns, ddof=1) / sqrt(n)`` (NaN for one episode, with a ``UserWarning``).
 
     Examples
     --------
@@ -66,5 +68,8 @@ def evaluate_policy(env, policy, n_episodes: int, *, seed=None, max_steps=None, 
     returns = episode_returns(env, policy, n_episodes, seed=seed, max_steps=max_steps,
                               n_envs=n_envs, reset_options=reset_options, progress=progress)
     n = returns.shape[0]
+    if n < 2:
+        warnings.warn("evaluate_policy: one episode has no standard error (NaN is returned); "
+                      "use n_episodes >= 2", UserWarning, stacklevel=2)
     se = float(returns.std(ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
     return float(returns.mean()), se

@@ -31,8 +31,16 @@ def as_observations(X, name: str = "observations", n_dims: int | None = None) ->
     if not np.isfinite(arr).all():
         raise ValueError(f"{name} contains NaN or infinite entries")
     if n_dims is not None and arr.shape[1] != n_dims:
+        if np.ndim(X) == 1 and arr.shape[0] == n_dims:
+            raise ValueError(
+                f"{name} of shape {np.shape(X)} read as {n_dims} observations of 1 dimension, "
+                f"but the map was fitted on {n_dims}-dimensional ones: maps and policies take "
+                f"a batch (n, {n_dims}); for one observation pass obs[None] (shape "
+                f"(1, {n_dims}))"
+            )
         raise ValueError(
             f"{name} have {arr.shape[1]} dimensions but the map was fitted on {n_dims}"
+            + (f": pass a batch (n, {n_dims})" if np.ndim(X) == 1 else "")
         )
     return arr
 

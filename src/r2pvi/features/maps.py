@@ -394,5 +394,9 @@ def _check_actions(actions, n_actions: int) -> np.ndarray:
             raise TypeError("actions must be integer indices, got non-integer values")
     a = a.astype(np.int64)
     if a.size and ((a < 0) | (a >= n_actions)).any():
-        raise ValueError(f"actions must lie in [0, {n_actions}), got {a.min()}..{a.max()}")
+        hint = (f": this feature map was built for n_actions={n_actions} (cross_actions(..., "
+                f"n_actions={n_actions})); pass the same n_actions to the dataset or policy, "
+                "or rebuild the map" if a.max() >= n_actions else "")
+        raise ValueError(f"actions must lie in [0, {n_actions}), got {a.min()}..{a.max()}"
+                         + hint)
     return a

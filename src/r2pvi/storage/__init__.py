@@ -39,7 +39,9 @@ The on-disk format (format version 2) is a directory::
     extra_<name>.npy     (K, H, ...)   observed states, actions, next states; optional
 
 Plain ``.npy`` files (no pickle, ``allow_pickle=False`` on every read), described by a JSON
-manifest with the shapes, dtypes and cached facts (non-negativity of the features).
+manifest with the shapes, dtypes and cached facts (non-negativity of the features, the
+rewards' ``reward_range`` [min, max] checked by ``fit`` against ``r_max``, and
+``reward_noise`` when the rewards are noisy samples).
 
 The modules, each importing only those listed before it: ``_fields`` (the fields, ``CHUNK``),
 ``_reads`` (a file step streamed by chunk: ``pread`` and a cast, or views of
@@ -79,6 +81,7 @@ from ._fields import (  # noqa: F401
     FileField,
     MappedField,
     _float_dtype,
+    widen_range,
 )
 from ._format import FORMAT_VERSION, GRAM_FILE, KIND, MANIFEST, SUMS_FILE  # noqa: F401
 from ._next import MapNext, NextStates, StoredNext, TableNext  # noqa: F401

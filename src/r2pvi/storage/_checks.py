@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from ._fields import CHUNK
+from ._fields import CHUNK, widen_range
 
 
 class SimplexFeatureWarning(UserWarning):
@@ -126,12 +126,15 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
                     stacklevel=3):
     """Validate step-major arrays chunk by chunk (no full-size temporaries).
 
-    Returns ``(nonnegative_phi, nonnegative_next_phi, any_known, unit_rows_phi)``; the last
-    is False when ``check_simplex`` is False (not checked).
+    Returns ``(nonnegative_phi, nonnegative_next_phi, any_known, unit_rows_phi,
+    reward_range)``; ``unit_rows_phi`` is False when ``check_simplex`` is False (not
+    checked), ``reward_range`` is the rewards' ``(min, max)``, taken in the same pass (the
+    estimators check it against ``r_max`` without reading the rewards again).
     """
     H, K, _ = phi.shape
     acc = [False, False, False, False, True, True]
     any_known, unit = False, bool(check_simplex)
+    low, high = np.inf, -np.inf
     for h in range(H):
         last = h == H - 1
         for s in range(0, K, chunk):
@@ -150,11 +153,12 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
             unit = unit and flags[6]
             if nv is not None and not last and not any_known:
                 any_known = bool((~np.isnan(nv)).any())
+            low, high = widen_range((low, high), rewards[h, s:e])
     if check_simplex:
         warn_simplex("phi", acc[0], acc[1], stacklevel)
         if next_phi is not None:
             warn_simplex("next_phi", acc[2], acc[3], stacklevel)
-    return acc[4], acc[5], any_known, unit
+    return acc[4], acc[5], any_known, unit, (float(low), float(high))
 
 
 def _counted(exc: ValueError, phi, rewards, next_values, chunk) -> ValueError:

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .._io import _held_kind
 from ._behaviour import BEHAVIOUR_VERSION, BehaviourNext, RowFile, _next_form, _write_behaviour
-from ._fields import Field, FileField, MappedField
+from ._fields import Field, FileField, MappedField, widen_range
 from ._format import (
     FORMAT_VERSION,
     GRAM_FILE,
@@ -32,7 +33,19 @@ def open_directory(path, feature_map=None) -> StepSource:
     manifest) needs the ``feature_map`` it was built with."""
     path = Path(os.fspath(path))
     if not path.exists():
-        raise FileNotFoundError(f"no such dataset directory: {path}")
+        hint = ("; a .npz dataset file is read into memory with OfflineDataset.load(path)"
+                if path.suffix == ".npz" else "")
+        raise FileNotFoundError(f"no such dataset directory: {path}{hint}")
+    if not path.is_dir():
+        held = _held_kind(path)
+        how = {"OfflineDataset": "a dataset .npz file (the single-file format): load it into "
+                                 "memory with OfflineDataset.load(path)",
+               "estimator": "an estimator file: load it with r2pvi.load(path)",
+               "feature_map": "a feature map file: load it with "
+                              "r2pvi.features.load_feature_map(path)"}.get(
+            held, "not a dataset directory")
+        raise ValueError(f"{path} is a file, {how}; OfflineDataset.open opens the dataset "
+                         "directories written by save(dir) or DatasetWriter")
     mf = _manifest(path)
     files = mf["files"]
 
@@ -90,7 +103,29 @@ def open_directory(path, feature_map=None) -> StepSource:
             raise ValueError(f"{path / files['phi_sums']} must hold (H, d) = {(H, d_)} "
                              f"float64 column sums, got {sums.shape} {sums.dtype}")
     return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams,
-                      sums=sums)
+                      sums=sums, reward_range=_manifest_reward_range(mf),
+                      reward_noise=_manifest_noise(path, mf))
+
+
+def _manifest_noise(path: Path, mf: dict) -> float:
+    """The rewards' noise level (``OfflineDataset.reward_noise``; 0 when not recorded)."""
+    noise = mf.get("reward_noise", 0.0)
+    if (isinstance(noise, bool) or not isinstance(noise, int | float) or not np.isfinite(noise)
+            or noise < 0):
+        raise ValueError(f"{path}: the manifest's reward_noise must be a number >= 0, got "
+                         f"{noise!r}")
+    return float(noise)
+
+
+def _manifest_reward_range(mf: dict) -> tuple[float, float] | None:
+    """The rewards' ``(min, max)`` the manifest records (written since the reward check
+    against ``r_max``), or None: then the first fit reads the rewards field once."""
+    rr = mf.get("reward_range")
+    if (isinstance(rr, list) and len(rr) == 2
+            and all(isinstance(x, int | float) and not isinstance(x, bool) for x in rr)
+            and np.isfinite(rr).all() and rr[0] <= rr[1]):
+        return float(rr[0]), float(rr[1])
+    return None
 
 
 def _open_behaviour(path: Path, mf: dict, field, phi: Field) -> BehaviourNext:
@@ -171,6 +206,8 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
     the next step's taken-action features (:class:`BehaviourNext`)."""
     path = Path(os.fspath(path))
     next_form = _next_form(next_form)
+    if path.exists() and not overwrite:  # before any work (checked again at the rename)
+        raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
     store = np.dtype(dtype) if dtype is not None else np.dtype(
         np.float32 if source.phi.dtype == np.float32 else np.float64)
     if store not in (np.float32, np.float64):
@@ -209,11 +246,20 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
             np.save(tmp / GRAM_FILE, grams, allow_pickle=False)
             files["phi_sums"] = SUMS_FILE
             np.save(tmp / SUMS_FILE, sums, allow_pickle=False)
-        put("rewards", source.rewards, np.float64)
+        bounds = [np.inf, -np.inf]
+
+        def rewards_range(h, s, e, rows):  # the rewards' range, as they stream by
+            bounds[:] = widen_range((bounds[0], bounds[1]), rows)
+            return rows
+
+        put("rewards", source.rewards, np.float64, rewards_range)
         nxt = source.next
         H, K, d = source.phi.shape
         A = nxt.n_actions
-        meta = {"nonnegative_phi": source.nonnegative_phi, "phi": phi_kind}
+        meta = {"nonnegative_phi": source.nonnegative_phi, "phi": phi_kind,
+                "reward_range": [float(bounds[0]), float(bounds[1])]}
+        if source.reward_noise:
+            meta["reward_noise"] = source.reward_noise
         if isinstance(nxt, MapNext):
             kind = "map"
             put("next_observations", nxt.observations, nxt.observations.dtype)

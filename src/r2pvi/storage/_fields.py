@@ -33,6 +33,14 @@ def _as_float64(a):
     return np.ascontiguousarray(a, dtype=np.float64)
 
 
+def widen_range(bounds: tuple[float, float], values: np.ndarray) -> tuple[float, float]:
+    """``bounds (low, high)`` widened to hold ``values`` (finite, checked by the caller): how
+    the rewards' range is accumulated chunk by chunk where validation reads them anyway."""
+    if values.size == 0:
+        return bounds
+    return min(bounds[0], float(np.min(values))), max(bounds[1], float(np.max(values)))
+
+
 class Field:
     """A step-major array ``(H, K, ...)`` read by step and range of trajectories."""
 

@@ -51,9 +51,13 @@ def _finish(tmp: Path, path: Path, manifest: dict, overwrite: bool) -> Path:
             shutil.rmtree(tmp, ignore_errors=True)
             raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
         old = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
+        was_dir = path.is_dir()
         os.replace(path, old)
         os.replace(tmp, path)
-        shutil.rmtree(old, ignore_errors=True)
+        if was_dir:
+            shutil.rmtree(old, ignore_errors=True)
+        else:  # a file (a legacy .npz, say) replaced by the directory
+            old.unlink(missing_ok=True)
     else:
         os.replace(tmp, path)  # atomic: readers see the old state or the complete dataset
     return path

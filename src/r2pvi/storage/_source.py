@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._fields import CHUNK, ArrayField, DaskField, Field, FileField, MappedField, _as_float64
+from ._fields import (
+    CHUNK,
+    ArrayField,
+    DaskField,
+    Field,
+    FileField,
+    MappedField,
+    _as_float64,
+    widen_range,
+)
 from ._next import NextStates
 from ._reads import _prefetched
 
@@ -71,8 +80,16 @@ class StepSource:
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
                  nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
-                 sums=None, unit_rows: bool = False):
+                 sums=None, unit_rows: bool = False, reward_range=None,
+                 reward_noise: float = 0.0):
         self.phi, self.rewards, self.next = phi, rewards, nxt
+        # The rewards' (min, max) when known (from validation or the manifest), else found
+        # by reward_bounds() from the rewards alone (never the features) and kept.
+        self.reward_range = None if reward_range is None else (
+            float(reward_range[0]), float(reward_range[1]))
+        # Standard deviation of zero-mean noise on the rewards (0: exact); see
+        # OfflineDataset.reward_noise.
+        self.reward_noise = float(reward_noise)
         self.extras = dict(extras or {})
         self.nonnegative_phi = nonnegative_phi
         # True when validation found every taken-action row summing to 1 (within
@@ -187,6 +204,22 @@ class StepSource:
             out[s:e] = rows @ z
         return out
 
+    def reward_bounds(self) -> tuple[float, float]:
+        """The rewards' ``(min, max)``: known since validation or from the manifest, else
+        read from the rewards field once (``H K`` numbers, no feature) and kept."""
+        if self.reward_range is None:
+            field = self.rewards
+            if isinstance(field, DaskField):
+                import dask
+
+                low, high = dask.compute(field.array.min(), field.array.max())
+            else:
+                low, high = np.inf, -np.inf
+                for h in range(self.horizon):
+                    low, high = widen_range((low, high), field.read(h))
+            self.reward_range = (float(low), float(high))
+        return self.reward_range
+
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
 
@@ -207,4 +240,4 @@ class StepSource:
                               phi.take(idx))
         return StepSource(phi, ArrayField(self.rewards.take(idx)),
                           self.next.take(idx), extras, self.nonnegative_phi, self.chunk,
-                          unit_rows=self.unit_rows)
+                          unit_rows=self.unit_rows, reward_noise=self.reward_noise)

@@ -11,7 +11,7 @@ import numpy as np
 
 from ._behaviour import _action_dtype, _behaviour_files, _next_form, behaviour_split
 from ._checks import check_features_chunk, step_major, warn_simplex
-from ._fields import FileField, _float_dtype
+from ._fields import FileField, _float_dtype, widen_range
 from ._format import (
     FORMAT_VERSION,
     GRAM_FILE,
@@ -111,6 +111,7 @@ class DatasetWriter:
         self._cleanup = weakref.finalize(self, shutil.rmtree, str(self._tmp), True)
         self._shards: list[tuple[int, bool]] = []  # (K of the chunk, has next_values)
         self._flags = [False, False, False, False, True, True]
+        self._reward_range = (np.inf, -np.inf)  # (min, max) of the appended rewards
         self.n_trajectories = 0
 
     def append(self, phi, rewards, next_phi, next_values=None) -> None:
@@ -144,6 +145,7 @@ class DatasetWriter:
                 self._flags[i] = self._flags[i] or f[i]
             self._flags[4] &= f[4]
             self._flags[5] &= f[5]
+        self._reward_range = widen_range(self._reward_range, r)
         i = len(self._shards)
         shard = self._tmp / f"shard{i:06d}"
         shard.mkdir()
@@ -225,7 +227,7 @@ class DatasetWriter:
                 "dtype": self.dtype.name, "next": "behaviour" if behaviour else "stored",
                 "files": {**files, "gram": GRAM_FILE, "phi_sums": SUMS_FILE}, "shapes": shapes,
                 "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
-                **extra,
+                "reward_range": [float(x) for x in self._reward_range], **extra,
             }
             return _finish(tmp, self.path, manifest, self.overwrite)
         except BaseException:
