@@ -7,6 +7,7 @@ import numbers
 
 import numpy as np
 
+from .._validation import check_choice
 from ..duals.constrained import kl_constrained
 from ..engine import StepContext, StepRule
 from ._params import check_radius
@@ -66,7 +67,7 @@ class KLBallRule(StepRule):
 def check_b_min(b_min):
     """Validate ``b_min``: "auto", None or a finite positive number."""
     if isinstance(b_min, str):
-        if b_min != "auto":
+        if b_min.lower() != "auto":
             raise ValueError(f"b_min must be 'auto', None or a positive number, got {b_min!r}")
         return "auto"
     if b_min is None:
@@ -176,10 +177,9 @@ class DRVIL(LinearEstimator):
         self.time_homogeneous = time_homogeneous
 
     def _validate_extra(self, dataset):
-        if self.form not in DRVIL_FORMS:
-            raise ValueError(f"form must be one of {DRVIL_FORMS}, got {self.form!r}")
         return {"rho": check_radius(self.rho, dataset.horizon, dataset.n_features),
-                "b_min": check_b_min(self.b_min), "form": self.form}
+                "b_min": check_b_min(self.b_min),
+                "form": check_choice(self.form, "form", DRVIL_FORMS)}
 
     def _make_rule(self, params):
         return KLBallRule(params["rho"], params["b_min"], params["form"])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import math
 
-from .._validation import check_scalar
+from .._validation import check_choice, check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
 from ..duals.ranges import project_onto_range, value_extent, value_range
 from ..duals.regularized import (
@@ -215,7 +215,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
     def _validate_common(self, dataset):
         beta = self.beta
         if isinstance(beta, str):
-            if beta != THEORY:
+            if beta.lower() != THEORY:
                 raise ValueError(f"beta must be a number >= 0 or 'theory', got {beta!r}")
             # Validate the other shared parameters as usual; _validate_extra sets beta.
             shadow = copy.copy(self)
@@ -246,10 +246,9 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         delta = check_scalar(self.delta, "delta", low=0.0, high=1.0, low_inclusive=False)
         if delta >= 1.0:
             raise ValueError(f"delta must lie in (0, 1), got {delta}")
-        if self.kl_form not in KL_FORMS:
-            raise ValueError(f"kl_form must be one of {KL_FORMS}, got {self.kl_form!r}")
+        kl_form = check_choice(self.kl_form, "kl_form", KL_FORMS)
         extra = {"lam": lam, "v_min": v_min, "divergence": div,
-                 "variance_aware": variance_aware, "kl_form": self.kl_form}
+                 "variance_aware": variance_aware, "kl_form": kl_form}
         if isinstance(self.beta, str):
             extra["beta"] = self._theory_beta(dataset, div, lam, delta, variance_aware)
         return extra
