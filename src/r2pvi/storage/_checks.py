@@ -75,7 +75,27 @@ def step_major(x, name: str, ndim: int, dtype=None) -> np.ndarray:
     sm = raw.swapaxes(0, 1)
     if sm.dtype == target and sm.flags.c_contiguous:
         return sm
+    check_float32_range(raw, name, target)
     return np.ascontiguousarray(sm, dtype=target)
+
+
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def check_float32_range(x, name: str, target) -> None:
+    """Refuse finite values that a cast to float32 (``target``) would turn into ``inf``."""
+    if np.dtype(target) != np.float32 or np.asarray(x).dtype.itemsize <= 4:
+        return
+    x = np.asarray(x)
+    with np.errstate(invalid="ignore"):
+        big = np.abs(x) > _F32_MAX
+        big &= np.isfinite(x)
+    if big.any():
+        top = float(np.max(np.abs(x[big])))
+        raise ValueError(
+            f"{name} holds finite values beyond float32's range (|x| up to {top:.6g} > "
+            f"{_F32_MAX:.6g}): stored as float32 they would become inf; store the dataset as "
+            "float64 (dtype='float64') or rescale the features")
 
 
 def layout_step_major(x: np.ndarray) -> np.ndarray:

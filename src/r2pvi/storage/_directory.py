@@ -10,6 +10,7 @@ import numpy as np
 
 from .._io import _held_kind
 from ._behaviour import BEHAVIOUR_VERSION, BehaviourNext, RowFile, _next_form, _write_behaviour
+from ._checks import check_float32_range
 from ._fields import Field, FileField, MappedField, widen_range
 from ._format import (
     FORMAT_VERSION,
@@ -177,12 +178,15 @@ def _open_behaviour(path: Path, mf: dict, field, phi: Field) -> BehaviourNext:
     return BehaviourNext(action, rest, phi, side, offsets, kv, mf.get("nonnegative_next_phi"))
 
 
-def _stream_field(out_path: Path, field: Field, dtype, chunk: int, transform=None):
-    """Write ``field`` step by step into a .npy file (bounded memory)."""
+def _stream_field(out_path: Path, field: Field, dtype, chunk: int, transform=None,
+                  name: str = ""):
+    """Write ``field`` step by step into a .npy file (bounded memory); finite values beyond
+    float32's range refuse a float32 ``dtype`` (they would become inf)."""
     with open(out_path, "wb") as fh:
         _write_npy_header(fh, field.shape, dtype)
         for h in range(field.shape[0]):
             for s, e, rows in field.chunks(h, chunk):
+                check_float32_range(rows, name or out_path.stem, dtype)
                 if transform is not None:
                     rows = transform(h, s, e, rows)
                 fh.write(np.ascontiguousarray(rows, dtype=dtype).tobytes())
@@ -219,7 +223,7 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
         def put(name, field, dt, transform=None):
             files[name] = name + ".npy"
             shapes[name] = list(field.shape)
-            _stream_field(tmp / files[name], field, dt, source.chunk, transform)
+            _stream_field(tmp / files[name], field, dt, source.chunk, transform, name)
 
         phi_kind = "stored"
         if next_form == "behaviour" and (isinstance(source.phi, MappedField) or isinstance(

@@ -29,9 +29,16 @@ def _manifest(path: Path) -> dict:
     if header.get("kind") != KIND:
         raise ValueError(f"{path} holds a {header.get('kind')!r}, not a {KIND!r}")
     version = header.get("format_version")
-    if not isinstance(version, int) or version > FORMAT_VERSION:
+    if isinstance(version, bool) or not isinstance(version, int) or version < FORMAT_VERSION:
+        # dataset directories exist from format version 2 on: anything else is not one
         raise ValueError(
-            f"{path} has format version {version!r}; this r2pvi reads versions <= "
+            f"{path}: the manifest's format_version must be the integer {FORMAT_VERSION} (the "
+            f"dataset directory format), got {version!r}; the manifest is damaged or was not "
+            "written by r2pvi"
+        )
+    if version > FORMAT_VERSION:
+        raise ValueError(
+            f"{path} has format version {version}; this r2pvi reads version "
             f"{FORMAT_VERSION}: upgrade r2pvi"
         )
     return header

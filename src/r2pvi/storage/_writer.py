@@ -122,9 +122,15 @@ class DatasetWriter:
         H, d, A = self.horizon, self.n_features, self.n_actions
         p = step_major(phi, "phi", 3, self.dtype)
         k = p.shape[1]
-        if p.shape != (H, k, d) or k == 0:
-            raise ValueError(f"phi must have shape (k, H, d) = (k, {H}, {d}) with k >= 1, got "
+        if p.shape != (H, k, d):
+            raise ValueError(f"phi must have shape (k, H, d) = (k, {H}, {d}), got "
                              f"{np.shape(phi)}")
+        if k == 0:  # an empty batch (the tail of a stream): nothing to write
+            for name, x in (("rewards", rewards), ("next_phi", next_phi)):
+                if np.shape(x)[:1] != (0,):
+                    raise ValueError(f"phi holds 0 trajectories but {name} has shape "
+                                     f"{np.shape(x)}")
+            return
         r = step_major(rewards, "rewards", 2, np.float64)
         if r.shape != (H, k):
             raise ValueError(f"rewards must have shape (k, H) = {(k, H)}, got {np.shape(rewards)}")
@@ -138,13 +144,22 @@ class DatasetWriter:
             if nv.shape != (H, k, A):
                 raise ValueError(f"next_values must have shape (k, H, A) = {(k, H, A)}, got "
                                  f"{np.shape(next_values)}; use NaN where the value is learned")
+        first = self.n_trajectories
+        flags = list(self._flags)  # merged only once the whole chunk is valid
         for h in range(H):
-            f = check_features_chunk(p[h], r[h], n[h], None if nv is None else nv[h],
-                                     h == H - 1, self.check_simplex)
+            try:
+                f = check_features_chunk(p[h], r[h], n[h], None if nv is None else nv[h],
+                                         h == H - 1, self.check_simplex)
+            except ValueError as exc:  # say where: the append, its trajectories, the step
+                raise ValueError(
+                    f"append #{len(self._shards)} (trajectories {first}..{first + k - 1} of the "
+                    f"dataset, rows 0..{k - 1} of this chunk), step h = {h}: {exc}; nothing "
+                    "of this chunk was written") from exc
             for i in range(4):
-                self._flags[i] = self._flags[i] or f[i]
-            self._flags[4] &= f[4]
-            self._flags[5] &= f[5]
+                flags[i] = flags[i] or f[i]
+            flags[4] &= f[4]
+            flags[5] &= f[5]
+        self._flags[:] = flags
         self._reward_range = widen_range(self._reward_range, r)
         i = len(self._shards)
         shard = self._tmp / f"shard{i:06d}"
