@@ -75,21 +75,23 @@ def step_major(x, name: str, ndim: int, dtype=None) -> np.ndarray:
     sm = raw.swapaxes(0, 1)
     if sm.dtype == target and sm.flags.c_contiguous:
         return sm
-    check_float32_range(raw, name, target)
-    return np.ascontiguousarray(sm, dtype=target)
+    with np.errstate(over="ignore"):
+        out = np.ascontiguousarray(sm, dtype=target)
+    check_float32_range(sm, out, name)
+    return out
 
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
-def check_float32_range(x, name: str, target) -> None:
-    """Refuse finite values that a cast to float32 (``target``) would turn into ``inf``."""
-    if np.dtype(target) != np.float32 or np.asarray(x).dtype.itemsize <= 4:
+def check_float32_range(x, cast, name: str) -> None:
+    """Refuse finite values of ``x`` that its cast ``cast`` (to float32) turned into ``inf``
+    (one pass over the cast when every value is finite)."""
+    cast = np.asarray(cast)
+    if cast.dtype != np.float32 or np.asarray(x).dtype.itemsize <= 4 or np.isfinite(cast).all():
         return
     x = np.asarray(x)
-    with np.errstate(invalid="ignore"):
-        big = np.abs(x) > _F32_MAX
-        big &= np.isfinite(x)
+    big = np.isinf(cast) & np.isfinite(x)
     if big.any():
         top = float(np.max(np.abs(x[big])))
         raise ValueError(

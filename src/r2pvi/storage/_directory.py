@@ -186,10 +186,12 @@ def _stream_field(out_path: Path, field: Field, dtype, chunk: int, transform=Non
         _write_npy_header(fh, field.shape, dtype)
         for h in range(field.shape[0]):
             for s, e, rows in field.chunks(h, chunk):
-                check_float32_range(rows, name or out_path.stem, dtype)
                 if transform is not None:
                     rows = transform(h, s, e, rows)
-                fh.write(np.ascontiguousarray(rows, dtype=dtype).tobytes())
+                with np.errstate(over="ignore"):
+                    out = np.ascontiguousarray(rows, dtype=dtype)
+                check_float32_range(rows, out, name or out_path.stem)
+                fh.write(out.tobytes())
 
 
 class _Computed(Field):
@@ -241,9 +243,11 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
             sums = np.zeros((source.horizon, source.n_features))
 
             def gram_of_stored(h, s, e, rows):
-                rows = np.asarray(rows, dtype=store)
-                _add_gram(grams[h], rows, sums[h])
-                return rows
+                with np.errstate(over="ignore"):
+                    cast = np.asarray(rows, dtype=store)
+                check_float32_range(rows, cast, "phi")
+                _add_gram(grams[h], cast, sums[h])
+                return cast
 
             put("phi", source.phi, store, gram_of_stored)
             files["gram"] = GRAM_FILE
