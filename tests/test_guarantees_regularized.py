@@ -111,7 +111,8 @@ def test_chi2_and_blind_kl_factors_never_exceed_the_plain_estimate(case):
     """The exact regularized dual never exceeds E V (mu = mu0 is feasible). chi^2 on signed
     ridge weights could (a negative estimated variance: 0.72 against a plain 0.46 in the
     new-user review); KL factors whose estimated moment is <= 0 got the step's bound (the
-    most optimistic value) instead of the plain estimate."""
+    most optimistic value) instead of the plain estimate, and with a tiny positive moment
+    they still did (the final review: a jump from plain to the bound as the moment crossed 0)."""
     seed, n, d, kind, scale, ties, gamma, log_lam, h = case
     E, v = ridge_problem(seed, n, d, kind, scale, ties, gamma)
     ctx = context(scale, h)
@@ -125,6 +126,7 @@ def test_chi2_and_blind_kl_factors_never_exceed_the_plain_estimate(case):
     blind = (s <= 0) | (moment <= -1e-12 * np.abs(E.matrix).sum(axis=1))
     w = KLRule(lam)(E, v, ctx)
     np.testing.assert_allclose(w[blind], plain[blind], rtol=0, atol=tol)
+    assert np.all(w <= plain + tol)
 
 
 @settings(max_examples=40)
@@ -469,8 +471,8 @@ def test_direct_kl_formula_log_domain_agrees():
     for lam in (0.05, 0.5, 5.0):
         log_u, sign = logsumexp(-(v - v.min()) / lam, b=E.matrix, axis=1, return_sign=True)
         direct = s * (v.min() - lam * (np.where(sign > 0, log_u, -np.inf) - np.log(s)))
-        # a moment <= 0 (lam = 0.05 here, factor 2): the plain estimate, not the cap
-        direct = np.minimum(np.where(sign > 0, direct, E(v)), v.max())
+        # capped at the plain estimate (a moment <= 0, lam = 0.05 here, factor 2: exactly it)
+        direct = np.minimum(np.minimum(np.where(sign > 0, direct, E(v)), E(v)), v.max())
         np.testing.assert_allclose(kl_regularized(E, v, lam), direct, rtol=1e-12, atol=1e-12)
 
 
@@ -518,3 +520,39 @@ def test_general_f_is_insensitive_to_an_ulp_in_the_row_sums():
     for div in (HELLINGER, cressie_read(2.0), cressie_read(0.5), KL):
         a, b = f_regularized(E, v, 0.358, div), f_regularized(F, v, 0.358, div)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-13, err_msg=div.name)
+
+
+def test_kl_is_continuous_as_the_estimated_moment_crosses_zero():
+    """Final review: with the plain estimate only where the moment is <= 0, a tiny positive
+    moment still gave the bound: lam 1.4426 -> 0.571 (plain), 1.4427 -> 2.0 (the bound)."""
+    phi = np.array([[1.0], [-0.5]])
+    E = RidgeExpectation(phi, cholesky_gram(phi, 0.5))
+    v = np.array([1.0, 0.0])
+    lams = np.linspace(1.40, 1.60, 401)
+    w = np.array([kl_regularized(E, v, lam, v_max=2.0)[0] for lam in lams])
+    assert np.all(w <= E(v)[0] + 1e-12)
+    assert np.max(np.abs(np.diff(w))) < 1e-3
+
+
+def test_a_custom_divergence_must_declare_its_slope_at_one():
+    """The general dual is evaluated around the tangent at s0 = f'(1) (f*(s0) = s0): KL written
+    by hand with the default slope_at_one (0, 0) gave 0.467 where the dual is 0.283 (above it
+    at lam = 2 before: wrong either way). Now refused, naming the fix."""
+    from scipy.special import xlogy
+
+    from r2pvi import FDivergence
+
+    def f(t):
+        return xlogy(t, t)
+
+    def conj(s):
+        return np.exp(np.asarray(s) - 1.0)
+
+    with pytest.raises(ValueError, match=r"slope_at_one=\(0.0, 0.0\).*\(1, 1\)"):
+        FDivergence("kl-by-hand", f, conj)
+    good = FDivergence("kl-by-hand", f, conj, slope_at_one=(1.0, 1.0))
+    E = FactorExpectation(np.array([[0.5, 0.5], [0.9, 0.1]]))
+    v = np.array([0.0, 1.0])
+    for lam in (0.5, 2.0):
+        np.testing.assert_allclose(f_regularized(E, v, lam, good), kl_regularized(E, v, lam),
+                                   rtol=1e-9)

@@ -70,6 +70,16 @@ def test_damaged_format_versions_are_refused_with_the_right_advice(tmp_path, bad
     path = OfflineDataset.from_features(*arrays(3)).save(tmp_path / "d")
     mf = json.loads((path / "manifest.json").read_text())
     (path / "manifest.json").write_text(json.dumps({**mf, "format_version": bad}))
-    with pytest.raises(ValueError, match="must be the integer 2") as err:
+    with pytest.raises(ValueError, match="must be an integer >= 2") as err:
         OfflineDataset.open(path)
     assert "upgrade" not in str(err.value)
+
+
+def test_writer_records_reward_noise_and_empty_appends_check_next_values(tmp_path):
+    with DatasetWriter(tmp_path / "w", horizon=3, n_features=4, n_actions=2,
+                       reward_noise=0.1) as w:
+        phi, rewards, next_phi = arrays(3)
+        with pytest.raises(ValueError, match="0 trajectories but next_values"):
+            w.append(phi[:0], rewards[:0], next_phi[:0], next_values=np.zeros((7, 1)))
+        w.append(phi, rewards, next_phi)
+    assert OfflineDataset.open(tmp_path / "w").reward_noise == 0.1

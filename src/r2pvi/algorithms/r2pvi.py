@@ -266,7 +266,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         problems = [
             text for bad, text in (
                 (variance_aware, "variance_aware=False"),
-                (self.penalty != "l1", "penalty='l1'"),
+                (str(self.penalty).lower() != "l1", "penalty='l1'"),
                 (gamma != 1.0, "gamma=1"),
                 (r_max != 1.0, "r_max=1 (rewards in [0, 1])"),
             ) if bad

@@ -100,6 +100,18 @@ class FDivergence:
             value = getattr(self, name)
             if value is not None and not callable(value):
                 raise TypeError(f"{name} must be a callable (vectorized over arrays) or None")
+        # f*(s0) = s0 exactly when s0 is a subgradient of f at 1 and f(1) = 0: the general dual
+        # is evaluated around that tangent (f_regularized), so a wrong slope gives wrong values
+        s0 = self.centre
+        with np.errstate(all="ignore"):
+            at = float(np.asarray(self.conjugate(np.asarray([s0], dtype=float)))[0])
+            f1 = float(np.asarray(self.f(np.asarray([1.0])))[0])
+        if not (abs(f1) <= 1e-9 and abs(at - s0) <= 1e-9 * max(1.0, abs(s0))):
+            raise ValueError(
+                f"slope_at_one={self.slope_at_one} is not the subdifferential of f at 1 for "
+                f"{self.name!r}: f(1) = {f1:g} and f*({s0:g}) = {at:g} (f(1) = 0 and "
+                f"f*(s0) = s0 for s0 = f'(1) are required); pass slope_at_one=(f'(1), f'(1)) "
+                "for a differentiable f (e.g. (1, 1) for KL's t log t)")
 
     @property
     def centre(self) -> float:

@@ -76,11 +76,11 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     ``-lam log s_i`` that grows without bound with ``lam``.
 
     ``v_max`` is the upper bound on V (the floor ``exp(-V_max/lam)`` of the paper's form, a cap
-    ``w_i <= V_max`` in both forms); None takes the maximum of ``v``. Where the estimated
-    moment is <= 0 (signed ridge weights; the formula's value is ``+inf``) the paper's form
-    gives ``V_max``, the normalized form the plain ridge estimate ``E_i(v)`` (capped at
-    ``V_max``): the value of the objective at ``mu = mu0``, an upper bound of the exact dual,
-    rather than the most optimistic value there is. ``extent``: ``(min v, max v)`` when
+    ``w_i <= V_max`` in both forms); None takes the maximum of ``v``. The normalized form is
+    also capped at the plain ridge estimate ``E_i(v)``, the objective's value at ``mu = mu0``,
+    which the exact dual never exceeds: with signed ridge weights the estimated moment can be
+    tiny or <= 0 (the formula's value then tends to ``+inf``), and the paper's form gives
+    ``V_max`` there, the most optimistic value there is. ``extent``: ``(min v, max v)`` when
     already known (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``.
     Computed in the log domain, shifted by the minimum value, so it is finite and exact for
     ``lam`` from 1e-3 to 1e3 and beyond; factors whose shifted estimate underflows are
@@ -107,6 +107,11 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
             ex = np.exp(z, out=z)
         log_u = _log_moment(E, v, shift, lam, E(ex))
         return shift - lam * np.maximum(log_u, -(upper - shift) / lam)
+    # The plain estimate E(v) caps the result (below): a streaming operator regresses v in the
+    # same read as the moment.
+    include = getattr(E, "include", None)
+    if include is not None:
+        include(v)
     # The moment u = E(e^{-(V-c)/lam}), the row sums s = E(1) and the centered moment
     # um = E(e^{-(V-c)/lam} - 1) = u - s, from ONE regression: s = Lambda^-1 Phi^T 1 comes
     # with the Gram matrix (its column sums are accumulated with it and stored with the data:
@@ -147,6 +152,7 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
             with np.errstate(divide="ignore", invalid="ignore"):
                 log_norm = np.where(near_one, np.log1p(um / s), np.log(u) - np.log(s))
         w = s * (shift - lam * log_norm)
+        np.minimum(w, E(v), out=w)
         return np.minimum(w, upper, out=w)
     live = s > 0.0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -156,13 +162,10 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
         near_one = u > 0.5 * safe_s
         log_norm[near_one] = np.log1p(um[near_one] / safe_s[near_one])
         w = s * (shift - lam * log_norm)
-    # No positive total weight (nothing to normalize), or an estimated moment <= 0 (the
-    # formula's value is +inf): the plain estimate E_i(v), the value of mu = mu0, which bounds
-    # the exact dual from above (the step's bound alone, the paper's floor, is the most
-    # optimistic value there is).
-    blind = ~live | (log_norm == -np.inf)
-    if blind.any():
-        w = np.where(blind, E(v), w)
+    # No positive total weight (nothing to normalize): the plain estimate; an estimated moment
+    # <= 0 (the formula's value is +inf) gets it from the cap.
+    plain = E(v)
+    w = np.minimum(np.where(live, w, plain), plain)
     return np.minimum(w, upper)
 
 
@@ -329,10 +332,12 @@ def f_regularized(
     - ``alpha* <= V_min + lam dom``, the right end of the conjugate's domain;
     - ``alpha* <= V_j + lam f'_+(1 / p_j)`` for every point j: the optimal perturbed
       distribution ``p_j (f*)'((alpha* - V_j)/lam)`` puts mass at most 1 on j, and
-      ``(f*)' = (f')^{-1}``. ``f'_+`` is bounded from above by a right secant, so the bound is
-      safe. With signed ridge weights this bound is what keeps ``alpha`` away from the edge
-      of the domain, where a negative weight times ``f* -> inf`` makes the estimated
-      objective unbounded (e.g. Hellinger: ``alpha* <= V_j + lam (1 - sqrt(p_j))``).
+      ``(f*)' = (f')^{-1}``. ``f'_+`` is the built-ins' exact right derivative
+      (:meth:`FDivergence.right_derivative`; a right secant, an upper bound, for user-defined
+      f), so the bound is safe. With signed ridge weights this bound is what keeps
+      ``alpha`` away from the edge of the domain, where a negative weight times
+      ``f* -> inf`` makes the estimated objective unbounded (e.g. Hellinger:
+      ``alpha* <= V_j + lam (1 - sqrt(p_j))``).
 
     The search is safeguarded: non-finite objective values count as ``-inf``, both interval
     ends are evaluated and the best point seen is returned (the ridge-estimated objective

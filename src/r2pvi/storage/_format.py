@@ -14,6 +14,7 @@ import numpy as np
 from ._fields import CHUNK
 
 FORMAT_VERSION = 2
+FIRST_DIRECTORY_VERSION = 2  # format 1 is the legacy single-file .npz
 KIND = "r2pvi.OfflineDataset"
 MANIFEST = "manifest.json"
 GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)
@@ -29,12 +30,13 @@ def _manifest(path: Path) -> dict:
     if header.get("kind") != KIND:
         raise ValueError(f"{path} holds a {header.get('kind')!r}, not a {KIND!r}")
     version = header.get("format_version")
-    if isinstance(version, bool) or not isinstance(version, int) or version < FORMAT_VERSION:
+    if (isinstance(version, bool) or not isinstance(version, int)
+            or version < FIRST_DIRECTORY_VERSION):
         # dataset directories exist from format version 2 on: anything else is not one
         raise ValueError(
-            f"{path}: the manifest's format_version must be the integer {FORMAT_VERSION} (the "
-            f"dataset directory format), got {version!r}; the manifest is damaged or was not "
-            "written by r2pvi"
+            f"{path}: the manifest's format_version must be an integer >= "
+            f"{FIRST_DIRECTORY_VERSION} (the dataset directory format), got {version!r}; the "
+            "manifest is damaged or was not written by r2pvi"
         )
     if version > FORMAT_VERSION:
         raise ValueError(

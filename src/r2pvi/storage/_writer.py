@@ -46,6 +46,9 @@ class DatasetWriter:
         Warn once (at :meth:`close`) when features leave the simplex.
     overwrite : bool, default False
         Replace an existing dataset at ``path``.
+    reward_noise : float, default 0.0
+        The rewards' noise level, recorded in the manifest (``OfflineDataset.reward_noise``:
+        ``fit`` lets rewards pass ``[0, r_max]`` by 8 of it).
     next_form : {"full", "behaviour"}, default "full"
         How the next-state features are stored. ``"full"``: every action's row,
         ``next_phi (H, K, A, d)``. ``"behaviour"``: each sample's row that is bitwise equal to
@@ -93,7 +96,7 @@ class DatasetWriter:
     """
 
     def __init__(self, path, *, horizon, n_features, n_actions, dtype="float32",
-                 check_simplex=True, overwrite=False, next_form="full"):
+                 check_simplex=True, overwrite=False, next_form="full", reward_noise=0.0):
         from .._validation import check_scalar
 
         self.path = Path(os.fspath(path))
@@ -104,6 +107,7 @@ class DatasetWriter:
         self.check_simplex = check_simplex
         self.overwrite = overwrite
         self.next_form = _next_form(next_form)
+        self.reward_noise = float(check_scalar(reward_noise, "reward_noise", low=0.0))
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists; pass overwrite=True or choose a new path")
         self._tmp: Path | None = _temp_dir(self.path)
@@ -126,8 +130,9 @@ class DatasetWriter:
             raise ValueError(f"phi must have shape (k, H, d) = (k, {H}, {d}), got "
                              f"{np.shape(phi)}")
         if k == 0:  # an empty batch (the tail of a stream): nothing to write
-            for name, x in (("rewards", rewards), ("next_phi", next_phi)):
-                if np.shape(x)[:1] != (0,):
+            for name, x in (("rewards", rewards), ("next_phi", next_phi),
+                            ("next_values", next_values)):
+                if x is not None and np.shape(x)[:1] != (0,):
                     raise ValueError(f"phi holds 0 trajectories but {name} has shape "
                                      f"{np.shape(x)}")
             return
@@ -244,6 +249,8 @@ class DatasetWriter:
                 "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
                 "reward_range": [float(x) for x in self._reward_range], **extra,
             }
+            if self.reward_noise:
+                manifest["reward_noise"] = self.reward_noise
             return _finish(tmp, self.path, manifest, self.overwrite)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
