@@ -159,22 +159,25 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
         near_one = u > 0.5 * safe_s
         log_norm[near_one] = np.log1p(um[near_one] / safe_s[near_one])
         w = s * (shift - lam * log_norm)  # +inf where the moment is <= 0
+    plain = None
     if not live.all():  # no positive total weight: nothing to normalize, the plain estimate
-        w = np.where(live, w, E(v))
-    return np.minimum(_tame(E, v, w, np.where(live, s * upper_v, np.inf)), upper)
+        plain = E(v)
+        w = np.where(live, w, plain)
+    return np.minimum(_tame(E, v, w, np.where(live, s * upper_v, np.inf), plain), upper)
 
 
-def _tame(E, v, w, top):
+def _tame(E, v, w, top, plain=None):
     """``w_i`` where it is at most ``top_i = s_i max v`` (what a distribution over the sampled
     values can give), else ``min(w_i, max(E_i(v), top_i))``: an estimate beyond every sampled
     value (a tiny or non-positive moment from signed ridge weights, ``w -> +inf``) is held at
     the larger of the plain estimate and ``top``. Continuous in ``w`` (at ``w = top`` both give
     ``top``), keeps the ``lam -> inf`` limit ``E_i(v)``, and costs the regression of ``v`` only
-    in the steps where some factor exceeds ``top``."""
+    in the steps where some factor exceeds ``top`` (``plain``: ``E(v)`` if already formed)."""
     over = ~(w <= top)  # NaN too
     if not over.any():
         return w
-    return np.where(over, np.minimum(w, np.maximum(E(v), top)), w)
+    plain = E(v) if plain is None else plain
+    return np.where(over, np.minimum(w, np.maximum(plain, top)), w)
 
 
 def _log_moment(E, v, shift, lam, u):
