@@ -21,7 +21,7 @@ import numpy as np
 
 from . import storage as _st
 from ._io import file_error, load_npz, save_npz
-from ._validation import as_float_array, as_index_array, check_scalar
+from ._validation import as_float_array, as_index_array
 from .storage import SimplexFeatureWarning
 
 __all__ = ["OfflineDataset", "SimplexFeatureWarning", "check_simplex_features"]
@@ -179,7 +179,7 @@ class OfflineDataset:
                                 _st.StoredNext(_st.ArrayField(n), known, nonneg_next),
                                 extras, nonneg_phi, unit_rows=unit,
                                 reward_range=reward_range,
-                                reward_noise=_check_noise(reward_noise))
+                                reward_noise=_st.check_reward_noise(reward_noise))
         return cls(_source=source)
 
     @classmethod
@@ -261,7 +261,7 @@ class OfflineDataset:
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi,
                                 unit_rows=unit, reward_range=reward_range,
-                                reward_noise=_check_noise(reward_noise))
+                                reward_noise=_st.check_reward_noise(reward_noise))
         return cls(_source=source)
 
     @classmethod
@@ -856,10 +856,6 @@ def _readonly(a):
     v = a.view()
     v.flags.writeable = False
     return v
-
-
-def _check_noise(reward_noise) -> float:
-    return float(check_scalar(reward_noise, "reward_noise", low=0.0))
 
 
 def _check_feature_map(feature_map, n_actions) -> None:

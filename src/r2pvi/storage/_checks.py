@@ -84,6 +84,14 @@ def step_major(x, name: str, ndim: int, dtype=None) -> np.ndarray:
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
+def check_reward_noise(reward_noise) -> float:
+    """``reward_noise`` (the rewards' noise level, ``OfflineDataset.reward_noise``) as a float
+    ``>= 0``."""
+    from .._validation import check_scalar
+
+    return float(check_scalar(reward_noise, "reward_noise", low=0.0))
+
+
 def check_float32_range(x, cast, name: str) -> None:
     """Refuse finite values of ``x`` that its cast ``cast`` (to float32) turned into ``inf``
     (one pass over the cast when every value is finite)."""

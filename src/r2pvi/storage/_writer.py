@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ._behaviour import _action_dtype, _behaviour_files, _next_form, behaviour_split
-from ._checks import check_features_chunk, step_major, warn_simplex
+from ._checks import check_features_chunk, check_reward_noise, step_major, warn_simplex
 from ._fields import FileField, _float_dtype, widen_range
 from ._format import (
     FORMAT_VERSION,
@@ -107,7 +107,7 @@ class DatasetWriter:
         self.check_simplex = check_simplex
         self.overwrite = overwrite
         self.next_form = _next_form(next_form)
-        self.reward_noise = float(check_scalar(reward_noise, "reward_noise", low=0.0))
+        self.reward_noise = check_reward_noise(reward_noise)
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists; pass overwrite=True or choose a new path")
         self._tmp: Path | None = _temp_dir(self.path)
