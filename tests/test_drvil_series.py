@@ -1,9 +1,11 @@
 """DRVI-L's fast paths (``kl_constrained``, benchmarks/bench_fit.py) against their reference forms.
 
-The Newton steps of the KL-ball dual evaluate each factor at its own ``b`` from Taylor moments
-kept at a few shared nodes (``_series_*``) instead of ``n`` exponentials per factor; the
-reference is the exact per-factor evaluation (``_per_factor_exact``) and, end to end, the
-solver with the series switched off (the local grid of exact evaluations, as before).
+The grid and the Newton steps of the KL-ball dual evaluate each factor at its own ``b`` from
+Chebyshev moments (``_cheb_*``: ``b`` from ``max y / _CHEB_X`` up to the values' scale) or
+from Taylor moments kept at a few shared nodes (``_series_*``: smaller ``b``) instead of ``n``
+exponentials per factor; the reference is the exact per-factor evaluation
+(``_per_factor_exact``) and, end to end, the solver with both switched off (the local grid of
+exact evaluations, as before).
 """
 
 import math
@@ -110,8 +112,8 @@ def test_series_order_meets_its_truncation_bound(x_max):
 
 
 def reference(monkeypatch, *args, **kwargs):
-    """``kl_constrained`` with the series switched off: a local grid of exact evaluations
-    and exact per-factor Newton steps (the solver before the series)."""
+    """``kl_constrained`` with the Chebyshev and Taylor moments switched off: a local grid of
+    exact evaluations and exact per-factor Newton steps (the solver before the series)."""
     with monkeypatch.context() as m:
         m.setattr(C._KLProblem, "_series_possible", lambda self: False)
         return kl_constrained(*args, **kwargs)
@@ -119,16 +121,18 @@ def reference(monkeypatch, *args, **kwargs):
 
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.integers(50, 400), st.integers(1, 8),
-       st.floats(-3.0, 1.0), st.sampled_from([1e-3, 1.0, 1e6]))
-def test_kl_ball_with_series_equals_the_exact_solver(seed, n, d, log_rho, scale):
+       st.floats(-3.0, 1.0), st.sampled_from([1e-3, 1.0, 1e6]), st.booleans())
+def test_kl_ball_with_series_equals_the_exact_solver(seed, n, d, log_rho, scale, normalized):
     """Dirichlet features (as the benchmark's and the simulated MDPs'), b_min = "auto"'s
-    value: the same maximum as the solver without the series, to rounding."""
+    value, Ma et al.'s centered form and DRVI-L's normalized one: the same maximum as the
+    solver without the Chebyshev and Taylor moments, to rounding."""
     rng = np.random.default_rng(seed)
     phi = rng.dirichlet(np.ones(d), size=n)
     v = scale * np.clip(phi @ rng.uniform(0.0, 1.0, d) + 0.1 * rng.normal(size=n), 0.0, None)
     E = RidgeExpectation(phi, cholesky_gram(phi, 1.0))
     b_min = (v.max() - v.min()) / math.log(n) if v.max() > v.min() else None
-    kw = {"v_range": (0.0, scale * 2.0), "centered": True, "b_min": b_min}
+    kw = {"v_range": (0.0, scale * 2.0), "b_min": b_min,
+          "normalized" if normalized else "centered": True}
     rho = 10.0 ** log_rho * rng.uniform(0.5, 1.5, size=d)
     got = kl_constrained(E, v, rho, **kw)
     want = reference(pytest.MonkeyPatch(), E, v, rho, **kw)
@@ -254,3 +258,211 @@ def test_hermite_argmax_stops_on_cycles_where_the_full_iteration_ends(seed, scal
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     # the hoisted coefficients round differently: a starting point, ~1e-12 off
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
+
+
+def test_cheb_matrix_gives_numpys_chebyshev_interpolant():
+    """``_CHEB_MATRIX @ f(_CHEB_S)`` are the coefficients of the interpolant at the Chebyshev
+    points of the first kind, as ``numpy.polynomial.chebyshev.chebinterpolate`` computes them."""
+    for x in (0.5, 4.0, C._CHEB_X):
+        def f(s, x=x):
+            return np.exp(-0.5 * x * (s + 1.0))
+        want = np.polynomial.chebyshev.chebinterpolate(f, C._CHEB_TERMS - 1)
+        np.testing.assert_allclose(C._CHEB_MATRIX @ f(C._CHEB_S), want, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("x_cap", [0.3, 2.0, 9.0, C._CHEB_X, 40.0])
+def test_cheb_terms_meet_their_interpolation_bound(x_cap):
+    """The interpolant at ``_cheb_terms(x_cap)`` Chebyshev points reproduces ``y^j exp(-y/b)``
+    (j = 0, 1, 2) on [0, 1] within ``tol b^j max(1, x)^j`` at the range's edge ``b = 1/x_cap``
+    and above; computed in extended precision (the bound is below double rounding). Half as
+    many points do not."""
+    if np.finfo(np.longdouble).eps > 1e-18:
+        pytest.skip("needs an extended-precision long double (x86)")
+    tol = 1e-17
+    m = C._cheb_terms(x_cap, tol)
+    pi = np.longdouble("3.14159265358979323846264338327950288")
+    y_dense = np.linspace(np.longdouble(0), np.longdouble(1), 4001)
+
+    def interpolant(points, b, j):
+        r = np.arange(points, dtype=np.longdouble)
+        s = np.cos(pi * (r + np.longdouble(0.5)) / points)
+        y = (s + 1) / 2
+        vals = y ** j * np.exp(-y / b)
+        k = np.arange(points, dtype=np.longdouble)
+        coef = (2 / np.longdouble(points)) * (np.cos(pi * np.outer(k, r + np.longdouble(0.5))
+                                                     / points) @ vals)
+        coef[0] /= 2
+        return np.polynomial.chebyshev.chebval(2 * y_dense - 1, coef)
+
+    for b in (1 / np.longdouble(x_cap), 2 / np.longdouble(x_cap)):
+        x = float(1 / b)
+        for j in (0, 1, 2):
+            exact = y_dense ** j * np.exp(-y_dense / b)
+            bound = tol * float(b) ** j * max(1.0, x) ** j
+            err = float(np.max(np.abs(interpolant(m, b, j) - exact)))
+            assert err <= bound + 1e-18, (b, j, err, bound)
+            if x_cap >= 2.0 and b < 1.5 / x_cap:  # the check can fail
+                err_half = float(np.max(np.abs(interpolant(m // 2, b, j) - exact)))
+                assert err_half > 100 * bound
+
+
+@settings(max_examples=150, deadline=None)
+@given(ridge_cases, st.floats(-6.0, 3.0), st.floats(0.0, 1.0), st.integers(0, 2**31 - 1))
+def test_cheb_evaluation_equals_the_exact_evaluation(case, log_rho, where, seed):
+    """Per factor at its own b in the Chebyshev range ``[max y / _CHEB_X, scale)`` (ridge
+    weights with signs, ties, a factor without mass, scales 1e-3 to 1e6), and below and above
+    it once the Chebyshev moments are known (the routing): values and both derivatives as
+    the exact form."""
+    E, v = ridge_operator(*case)
+    scale = case[-1]
+    prob = problem(E, v, 10.0 ** log_rho)
+    if not prob._series_possible() or not np.isfinite(prob._b_cheb):
+        return
+    lo, hi = math.log(prob._b_cheb), math.log(prob.scale)
+    prob.on_grid(np.array([math.exp(lo + 0.5 * (hi - lo))]))  # brings the Chebyshev moments
+    assert prob._cheb is not None
+    d = E.n_dims
+    rng = np.random.default_rng(seed)
+    t = lo + (hi - lo) * np.clip(where + 0.05 * rng.uniform(-1, 1, size=d), 0.0, 0.999999)
+    idx = np.arange(d)
+    # in the range, and below and above it (Taylor nodes or the exact form, not the
+    # Chebyshev moments, which would be 2e-10 off 1.5 below the range)
+    for tt in (t, np.full(d, lo - 1.5), np.full(d, lo - 0.4), np.full(d, hi + 1.0)):
+        b = np.exp(tt)
+        got = prob.per_factor(idx, b)
+        want = prob._per_factor_exact(idx, b)
+        np.testing.assert_allclose(got[0], want[0], rtol=1e-12, atol=1e-12 * scale)
+        np.testing.assert_allclose(got[1], want[1], rtol=1e-9, atol=1e-10 * scale)
+        np.testing.assert_allclose(got[2], want[2], rtol=1e-7, atol=1e-8 * scale)
+
+
+def test_newton_steps_of_a_benchmark_step_make_no_pass(monkeypatch):
+    """The benchmark's kind of step (Dirichlet features, DRVI-L's normalized form and b_min;
+    radii whose maximizers lie in the Chebyshev range): the grid and every Newton step are
+    served by the Chebyshev moments: no per-factor exact evaluation (n exponentials each) and
+    one operator call on the step's points besides E(v), the grid's. The values equal the
+    exact solver's."""
+    rng = np.random.default_rng(0)
+    n, d = 3000, 12
+    phi = rng.dirichlet(np.ones(d), size=n)
+    v = rng.dirichlet(np.ones(d), size=n) @ rng.uniform(0.0, 5.0, d)  # next states' values
+    E = RidgeExpectation(phi, cholesky_gram(phi, 1.0))
+    kw = {"v_range": (0.0, 6.0), "normalized": True, "b_min": (v.max() - v.min()) / math.log(n)}
+    exact, cheb, call = (C._KLProblem._per_factor_exact, C._KLProblem._cheb_at,
+                         RidgeExpectation.__call__)
+
+    def count(key, fn):
+        def wrapped(*a, **k):
+            calls[key] += 1
+            return fn(*a, **k)
+        return wrapped
+
+    for rho in (0.01, 0.03, 0.1):
+        calls = {"exact": 0, "cheb": 0, "operator": 0}
+        with monkeypatch.context() as m:
+            m.setattr(C._KLProblem, "_per_factor_exact", count("exact", exact))
+            m.setattr(C._KLProblem, "_cheb_at", count("cheb", cheb))
+            m.setattr(RidgeExpectation, "__call__", count("operator", call))
+            got = kl_constrained(E, v, rho, **kw)
+        assert calls["exact"] == 0 and calls["cheb"] > 0, calls
+        assert calls["operator"] == 2, calls  # E(v) and the grid with the Chebyshev basis
+        np.testing.assert_allclose(got, reference(pytest.MonkeyPatch(), E, v, rho, **kw),
+                                   rtol=1e-10, atol=1e-12)
+
+
+@settings(max_examples=150, deadline=None)
+@given(ridge_cases, st.floats(0.0, 1.0))
+def test_cheb_moments_equal_the_direct_moments(case, where):
+    """The Chebyshev moments' ``E_i[y^j exp(-y/b)]`` against the explicit weight rows, per
+    unit of ``|weight|`` (and of ``b^j max(1, max y / b)^j``), across the range: the rounding
+    of the two forms (~3e-15 measured), not the truncation (~4e-10 with 10 points fewer)."""
+    E, v = ridge_operator(*case)
+    prob = problem(E, v, 0.1)
+    if not prob._series_possible() or not np.isfinite(prob._b_cheb):
+        return
+    lo, hi = math.log(prob._b_cheb), math.log(prob.scale)
+    prob.on_grid(np.array([math.exp(0.5 * (lo + hi))]))
+    rows = prob._weight_rows() / prob.norm[:, None]
+    y = prob._y_shared
+    b = math.exp(lo + where * (hi - lo) * 0.999999)
+    coef = prob._cheb_coefficients(np.array([b]))
+    for j in range(3):
+        got = prob._cheb @ coef[j, 0]
+        want = rows @ (y ** j * np.exp(-y / b))
+        unit = np.abs(rows).sum(axis=1) * b ** j * max(1.0, prob._y_max / b) ** j
+        assert np.all(np.abs(got - want) <= 2e-14 * unit + 1e-300), (j, got - want, unit)
+
+
+def test_cheb_objective_is_relatively_accurate_for_mass_at_the_top():
+    """A ridge factor whose mass sits at the largest values (``E_i[e^{-y/b}]`` as small as
+    ``e^{-6}`` at the range's lower end): the Chebyshev route's objective within 2e-13
+    (relative) of the exact evaluation across the range (the bound of ``_CHEB_X``'s comment;
+    measured 2.3e-14). With the range down to ``max y / 16`` it was 5e-10 off."""
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        n, d = 400, 5
+        v = rng.uniform(0.0, 1.0, n)
+        v[0] = 0.0
+        top = (v > 0.97).astype(float)
+        phi = np.hstack([top[:, None],
+                         0.5 * rng.dirichlet(np.ones(d - 1), size=n) * (1.0 - top[:, None])])
+        E = RidgeExpectation(phi, cholesky_gram(phi, 1e-3))
+        prob = C._KLProblem(E, v, np.full(d, 0.1), np.arange(d), 0.0, False, normalized=True)
+        prob.set_cap(np.clip(E(v), 0.0, 1.0))
+        prob.on_grid(np.array([1.0]))
+        lo, hi = math.log(prob._b_cheb), math.log(prob.scale)
+        prob.on_grid(np.array([math.exp(0.5 * (lo + hi))]))
+        assert prob._cheb is not None
+        idx = np.arange(d)
+        for t in (lo + 1e-12, lo + 0.3, 0.5 * (lo + hi)):
+            b = np.full(d, math.exp(t))
+            got, want = prob.per_factor(idx, b)[0], prob._per_factor_exact(idx, b)[0]
+            np.testing.assert_allclose(got, want, rtol=2e-13, atol=0)
+
+
+def test_interior_maximum_between_coarse_grid_points_is_found():
+    """A reviewer's case (seed 395; DRVI-L's defaults: normalized form, b_min = spread /
+    log n): factor 0's objective is not concave and peaks between b_min and the next coarse
+    grid point; the result is the dense search's maximum (the first Chebyshev version returned
+    3.7e-5 less; the solver before it found it by the chance of another factor's node)."""
+    rng = np.random.default_rng(395)
+    n = int(rng.choice([20, 60, 200]))
+    d = int(rng.choice([4, 8, 16]))
+    phi = rng.dirichlet(np.full(d, 0.5), size=n)
+    nphi = rng.dirichlet(np.full(d, 0.5), size=(n, 3))
+    v = np.clip((nphi @ rng.uniform(0, 1, d)).max(axis=1), 0, None)
+    rho = float(10 ** rng.uniform(-3, 0.5))
+    b_min = (v.max() - v.min()) / np.log(n)
+    got = kl_constrained(RidgeExpectation(phi, cholesky_gram(phi, 1.0)), v, rho,
+                         v_range=(0.0, 2.0), normalized=True, b_min=b_min)
+    rows = np.linalg.solve(phi.T @ phi + np.eye(d), phi.T)  # the ridge weights, explicitly
+    for i in range(d):
+        s = rows[i].sum()
+        w = rows[i] / s
+        cap = np.clip(rows[i] @ v, 0.0, 2.0) / s
+        bs = np.geomspace(b_min, 2 * v.max() / rho, 100_001)
+        u = np.maximum(np.exp(-v[None] / bs[:, None]) @ w, np.exp(-cap / bs))
+        dense = s * np.max(-bs * np.log(u) - bs * rho)
+        assert got[i] >= dense - 1e-12 * np.abs(v).max(), (i, got[i], dense)
+        assert got[i] <= min(s * cap, dense + 1e-6), (i, got[i], dense)
+
+
+@pytest.mark.parametrize("p, rho", [(1.32e-9, 0.163), (1.2e-10, 0.0124), (0.3, 0.05),
+                                    (1e-4, 0.1508)])
+def test_exact_two_point_distribution_is_exact(p, rho):
+    """Exact distributions keep the relatively accurate Taylor path: mass p at V = 0, 1 - p at
+    V = 1 (a reviewer's cases, where the first Chebyshev version was 5e-10 off; the last has
+    its maximizer b = 0.17 inside what would be the Chebyshev range): the result
+    equals the maximum of ``-b log(p + (1 - p) e^{-1/b}) - b rho`` found by a bounded scalar
+    search, to 1e-14."""
+    from scipy.optimize import minimize_scalar
+
+    def g(t):
+        b = math.exp(t)
+        return -b * (np.logaddexp(math.log(p), math.log1p(-p) - 1.0 / b) + rho)
+
+    best = minimize_scalar(lambda t: -g(t), bounds=(math.log(1e-4), math.log(1e3)),
+                           method="bounded", options={"xatol": 1e-12})
+    want = g(best.x)
+    got = kl_constrained(FactorExpectation(np.array([[p, 1.0 - p]])), np.array([0.0, 1.0]), rho)
+    np.testing.assert_allclose(got[0], want, rtol=1e-14, atol=1e-15)

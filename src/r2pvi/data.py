@@ -171,14 +171,14 @@ class OfflineDataset:
                     f"next_values must have shape (K, H, A) = {(K, H, A)}, got "
                     f"{np.shape(next_values)}; use NaN where the value must be learned"
                 )
-        nonneg_phi, nonneg_next, any_known, unit, reward_range = _st.validate_source(
+        nonneg_phi, nonneg_next, any_known, unit, reward_range, row_sums = _st.validate_source(
             p, r, n, nv, check_simplex, stacklevel=3)
         extras = _check_extras(K, H, A, states=states, actions=actions, next_states=next_states)
         known = _st.ArrayField(nv) if nv is not None and any_known else None
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.StoredNext(_st.ArrayField(n), known, nonneg_next),
                                 extras, nonneg_phi, unit_rows=unit,
-                                reward_range=reward_range,
+                                reward_range=reward_range, row_sums=row_sums,
                                 reward_noise=_st.check_reward_noise(reward_noise))
         return cls(_source=source)
 
@@ -250,7 +250,7 @@ class OfflineDataset:
                 raise ValueError(f"known_values must have shape (S, A) = {(S, A)}, got {kt.shape}")
             if np.isnan(kt).all():
                 kt = None
-        nonneg_phi, _, _, unit, reward_range = _st.validate_source(
+        nonneg_phi, _, _, unit, reward_range, row_sums = _st.validate_source(
             p, r, None, None, check_simplex, stacklevel=3)
         if check_simplex:
             used = tab if tab.ndim == 3 else tab[: max(H - 1, 1)]
@@ -260,7 +260,7 @@ class OfflineDataset:
                                actions=actions, next_states=ix.T)
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi,
-                                unit_rows=unit, reward_range=reward_range,
+                                unit_rows=unit, reward_range=reward_range, row_sums=row_sums,
                                 reward_noise=_st.check_reward_noise(reward_noise))
         return cls(_source=source)
 

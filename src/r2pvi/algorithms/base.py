@@ -352,10 +352,17 @@ def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=Non
 
 def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: float):
     """``(min, max)`` of ``phi_h^T theta_h`` over the taken actions, exact where it matters:
-    a step whose bound ``[min theta_h, max theta_h]`` (simplex rows) or ``0`` (``theta_h =
-    0``) lies in ``[low_ok, high_ok]`` is not read."""
+    a step whose bound ``[min theta_h, max theta_h]`` (simplex rows), ``[min(s t), max(s t)]``
+    over the recorded range of the rows' sums ``s`` and ``t`` in ``{min theta_h, max
+    theta_h}`` (non-negative rows whose sums are known) or ``0`` (``theta_h = 0``) lies in
+    ``[low_ok, high_ok]`` is not read."""
     source = getattr(dataset, "_source", None)
-    simplex = source is not None and source.unit_rows and source.nonnegative_phi is True
+    nonneg = source is not None and source.nonnegative_phi is True
+    simplex = nonneg and source.unit_rows
+    # non-negative rows whose sums lie in [s_lo, s_hi] (found by validation or recorded in a
+    # directory's manifest; e.g. float32 rows, 1 within ~1e-7): phi^T theta lies in
+    # [min(s t_min), max(s t_max)]
+    sums = getattr(source, "phi_row_sums", None) if nonneg and not simplex else None
     low, high = np.inf, -np.inf
     for h in range(dataset.horizon):
         t = theta[h]
@@ -363,6 +370,10 @@ def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: fl
             bounds = (0.0, 0.0)
         elif simplex:
             bounds = (float(t.min()), float(t.max()))
+        elif sums is not None:
+            ends = (sums[0] * float(t.min()), sums[1] * float(t.min()),
+                    sums[0] * float(t.max()), sums[1] * float(t.max()))
+            bounds = (min(ends), max(ends))
         else:
             bounds = (-np.inf, np.inf)
         if not (low_ok <= bounds[0] and bounds[1] <= high_ok):

@@ -40,8 +40,9 @@ The on-disk format (format version 2) is a directory::
 
 Plain ``.npy`` files (no pickle, ``allow_pickle=False`` on every read), described by a JSON
 manifest with the shapes, dtypes and cached facts (non-negativity of the features, the
-rewards' ``reward_range`` [min, max] checked by ``fit`` against ``r_max``, and
-``reward_noise`` when the rewards are noisy samples).
+rewards' ``reward_range`` [min, max] checked by ``fit`` against ``r_max``, the range
+``phi_row_sums`` [min, max] of the stored taken-action rows' sums, and ``reward_noise``
+when the rewards are noisy samples).
 
 The modules, each importing only those listed before it: ``_fields`` (the fields, ``CHUNK``),
 ``_reads`` (a file step streamed by chunk: ``pread`` and a cast, or views of

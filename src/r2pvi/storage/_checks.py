@@ -27,16 +27,19 @@ def simplex_flags(x: np.ndarray, atol: float = 1e-8) -> tuple[bool, bool]:
     return simplex_facts(x, atol)[:2]
 
 
-def simplex_facts(x: np.ndarray, atol: float = 1e-8) -> tuple[bool, bool, bool]:
+def simplex_facts(x: np.ndarray, atol: float = 1e-8) -> tuple[bool, bool, bool, float, float]:
     """``(negative entries, rows not summing to 1, every row sums to 1 within
-    UNIT_ROW_ATOL)`` of feature rows (last axis), from one pass of row sums."""
+    UNIT_ROW_ATOL, least row sum, largest row sum)`` of feature rows (last axis), from one
+    pass of row sums (NaN rows make the last three NaN-based: not unit rows)."""
     if x.size == 0:
-        return False, False, True
+        return False, False, True, np.inf, -np.inf
     # in float64, as the fits see the rows (a float32 sum can round to 1.0 exactly while the
     # float64 sum of the same float32 numbers is 3e-8 off)
-    dev = np.abs(x.sum(axis=-1, dtype=np.float64) - 1.0)
+    sums = x.sum(axis=-1, dtype=np.float64)
+    dev = np.abs(sums - 1.0)
     worst = float(np.max(dev))  # NaN rows (known values) make it NaN: not unit rows
-    return bool((x < -atol).any()), bool((dev > 1e-6).any()), bool(worst <= UNIT_ROW_ATOL)
+    return (bool((x < -atol).any()), bool((dev > 1e-6).any()), bool(worst <= UNIT_ROW_ATOL),
+            float(np.min(sums)), float(np.max(sums)))
 
 
 def warn_simplex(name: str, negative: bool, off_sum: bool, stacklevel: int = 3) -> bool:
@@ -119,7 +122,8 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
                          simplex: bool = True):
     """Validate one chunk of step-major rows; returns ``(phi, next_phi)`` simplex flags
     and non-negativity: ``(neg_phi, off_phi, neg_next, off_next, nonneg_phi, nonneg_next,
-    unit_rows_phi)`` (the last: phi's rows sum to 1 within ``UNIT_ROW_ATOL``).
+    unit_rows_phi, least_sum_phi, largest_sum_phi)`` (``unit_rows_phi``: phi's rows sum to 1
+    within ``UNIT_ROW_ATOL``; the row sums' range is NaN when ``simplex=False``).
 
     ``last_step`` marks rows of ``h = H-1`` whose next-state data is never used. With
     ``simplex=False`` the simplex flags (row sums: most of the work) are not computed and
@@ -132,11 +136,11 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
     if next_values is not None and not last_step and np.isinf(next_values).any():
         raise ValueError(f"next_values contains {int(np.count_nonzero(np.isinf(next_values)))} "
                          "infinite entries; use NaN where the value must be learned")
-    facts = simplex_facts(phi) if simplex else (False, False, False)
-    flags, unit = facts[:2], facts[2]
+    facts = simplex_facts(phi) if simplex else (False, False, False, np.nan, np.nan)
+    flags, unit, sums = facts[:2], facts[2], facts[3:]
     nonneg_phi = bool((phi >= 0).all())
     if last_step or next_phi is None:
-        return flags + (False, False, nonneg_phi, True, unit)
+        return flags + (False, False, nonneg_phi, True, unit) + sums
     finite = np.isfinite(next_phi).all(axis=-1)
     if not finite.all():
         # An action whose value is known needs no features: its row may be left NaN.
@@ -149,7 +153,7 @@ def check_features_chunk(phi, rewards, next_phi, next_values, last_step: bool,
             )
     # NaN rows (known values) count as neither negative nor off the simplex.
     next_flags = simplex_flags(next_phi) if simplex else (False, False)
-    return flags + next_flags + (nonneg_phi, not bool((next_phi < 0).any()), unit)
+    return flags + next_flags + (nonneg_phi, not bool((next_phi < 0).any()), unit) + sums
 
 
 def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chunk=CHUNK,
@@ -157,14 +161,16 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
     """Validate step-major arrays chunk by chunk (no full-size temporaries).
 
     Returns ``(nonnegative_phi, nonnegative_next_phi, any_known, unit_rows_phi,
-    reward_range)``; ``unit_rows_phi`` is False when ``check_simplex`` is False (not
+    reward_range, row_sums)``; ``unit_rows_phi`` is False when ``check_simplex`` is False (not
     checked), ``reward_range`` is the rewards' ``(min, max)``, taken in the same pass (the
-    estimators check it against ``r_max`` without reading the rewards again).
+    estimators check it against ``r_max`` without reading the rewards again), ``row_sums``
+    the ``(min, max)`` of phi's row sums (None when not checked).
     """
     H, K, _ = phi.shape
     acc = [False, False, False, False, True, True]
     any_known, unit = False, bool(check_simplex)
     low, high = np.inf, -np.inf
+    s_low, s_high = np.inf, -np.inf
     for h in range(H):
         last = h == H - 1
         for s in range(0, K, chunk):
@@ -181,6 +187,7 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
             acc[4] = acc[4] and flags[4]
             acc[5] = acc[5] and flags[5]
             unit = unit and flags[6]
+            s_low, s_high = min(s_low, flags[7]), max(s_high, flags[8])
             if nv is not None and not last and not any_known:
                 any_known = bool((~np.isnan(nv)).any())
             low, high = widen_range((low, high), rewards[h, s:e])
@@ -188,7 +195,9 @@ def validate_source(phi, rewards, next_phi, next_values, check_simplex=True, chu
         warn_simplex("phi", acc[0], acc[1], stacklevel)
         if next_phi is not None:
             warn_simplex("next_phi", acc[2], acc[3], stacklevel)
-    return acc[4], acc[5], any_known, unit, (float(low), float(high))
+    row_sums = (float(s_low), float(s_high)) if check_simplex and np.isfinite(
+        [s_low, s_high]).all() else None
+    return acc[4], acc[5], any_known, unit, (float(low), float(high)), row_sums
 
 
 def _counted(exc: ValueError, phi, rewards, next_values, chunk) -> ValueError:

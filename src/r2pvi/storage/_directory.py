@@ -22,6 +22,7 @@ from ._format import (
     _manifest,
     _temp_dir,
     _write_npy_header,
+    manifest_range,
 )
 from ._next import MapNext, NextStates, StoredNext, TableNext
 from ._source import StepSource
@@ -104,8 +105,9 @@ def open_directory(path, feature_map=None) -> StepSource:
             raise ValueError(f"{path / files['phi_sums']} must hold (H, d) = {(H, d_)} "
                              f"float64 column sums, got {sums.shape} {sums.dtype}")
     return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams,
-                      sums=sums, reward_range=_manifest_reward_range(mf),
-                      reward_noise=_manifest_noise(path, mf))
+                      sums=sums, reward_range=manifest_range(mf, "reward_range"),
+                      reward_noise=_manifest_noise(path, mf),
+                      row_sums=manifest_range(mf, "phi_row_sums"))
 
 
 def _manifest_noise(path: Path, mf: dict) -> float:
@@ -116,17 +118,6 @@ def _manifest_noise(path: Path, mf: dict) -> float:
         raise ValueError(f"{path}: the manifest's reward_noise must be a number >= 0, got "
                          f"{noise!r}")
     return float(noise)
-
-
-def _manifest_reward_range(mf: dict) -> tuple[float, float] | None:
-    """The rewards' ``(min, max)`` the manifest records (written since the reward check
-    against ``r_max``), or None: then the first fit reads the rewards field once."""
-    rr = mf.get("reward_range")
-    if (isinstance(rr, list) and len(rr) == 2
-            and all(isinstance(x, int | float) and not isinstance(x, bool) for x in rr)
-            and np.isfinite(rr).all() and rr[0] <= rr[1]):
-        return float(rr[0]), float(rr[1])
-    return None
 
 
 def _open_behaviour(path: Path, mf: dict, field, phi: Field) -> BehaviourNext:
@@ -228,6 +219,7 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
             _stream_field(tmp / files[name], field, dt, source.chunk, transform, name)
 
         phi_kind = "stored"
+        row_sums = [np.inf, -np.inf]  # of the stored phi rows' sums (gram_of_stored)
         if next_form == "behaviour" and (isinstance(source.phi, MappedField) or isinstance(
                 source.next, MapNext | TableNext)):
             raise ValueError(
@@ -246,7 +238,7 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
                 with np.errstate(over="ignore"):
                     cast = np.asarray(rows, dtype=store)
                 check_float32_range(rows, cast, "phi")
-                _add_gram(grams[h], cast, sums[h])
+                _add_gram(grams[h], cast, sums[h], row_sums)
                 return cast
 
             put("phi", source.phi, store, gram_of_stored)
@@ -266,6 +258,8 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
         A = nxt.n_actions
         meta = {"nonnegative_phi": source.nonnegative_phi, "phi": phi_kind,
                 "reward_range": [float(bounds[0]), float(bounds[1])]}
+        if np.isfinite(row_sums).all():
+            meta["phi_row_sums"] = [float(row_sums[0]), float(row_sums[1])]
         if source.reward_noise:
             meta["reward_noise"] = source.reward_noise
         if isinstance(nxt, MapNext):

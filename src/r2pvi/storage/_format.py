@@ -72,13 +72,31 @@ def _finish(tmp: Path, path: Path, manifest: dict, overwrite: bool) -> Path:
     return path
 
 
-def _add_gram(gram: np.ndarray, rows: np.ndarray, sums: np.ndarray) -> None:
+def _add_gram(gram: np.ndarray, rows: np.ndarray, sums: np.ndarray,
+              row_sums: list | None = None) -> None:
     """``gram += X^T X`` and ``sums += X^T 1`` for rows ``X (n, d)`` in float64 (by blocks of
-    ``CHUNK`` rows)."""
+    ``CHUNK`` rows); ``row_sums`` (``[low, high]``, if given) widened to the range of the rows'
+    sums ``X 1`` (the manifest's ``phi_row_sums``)."""
     for s in range(0, rows.shape[0], CHUNK):
         x = np.asarray(rows[s:s + CHUNK], dtype=np.float64)
         gram += x.T @ x
         sums += np.ones(x.shape[0]) @ x
+        if row_sums is not None and x.shape[0]:
+            rs = x @ np.ones(x.shape[1])
+            row_sums[0] = min(row_sums[0], float(rs.min()))
+            row_sums[1] = max(row_sums[1], float(rs.max()))
+
+
+def manifest_range(mf: dict, key: str) -> tuple[float, float] | None:
+    """A ``[low, high]`` pair the manifest records under ``key`` (``reward_range``,
+    ``phi_row_sums``), or None when it is absent (written before it) or not a finite
+    ordered pair (then the facts are found from the data instead)."""
+    rs = mf.get(key)
+    if (isinstance(rs, list) and len(rs) == 2
+            and all(isinstance(x, int | float) and not isinstance(x, bool) for x in rs)
+            and np.isfinite(rs).all() and rs[0] <= rs[1]):
+        return float(rs[0]), float(rs[1])
+    return None
 
 
 def _write_npy_header(fh, shape, dtype):

@@ -81,7 +81,7 @@ class StepSource:
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
                  nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
                  sums=None, unit_rows: bool = False, reward_range=None,
-                 reward_noise: float = 0.0):
+                 reward_noise: float = 0.0, row_sums=None):
         self.phi, self.rewards, self.next = phi, rewards, nxt
         # The rewards' (min, max) when known (from validation or the manifest), else found
         # by reward_bounds() from the rewards alone (never the features) and kept.
@@ -96,6 +96,10 @@ class StepSource:
         # storage._checks.UNIT_ROW_ATOL): then Phi^T W 1 = Phi^T W Phi 1_d, the Gram
         # matrix's row sums, and E(1) needs no pass of its own.
         self.unit_rows = bool(unit_rows)
+        # (low, high) of the taken-action rows' sums when known (validation, or a directory's
+        # manifest): with non-negative rows it bounds phi_h^T theta_h without reading them.
+        self.phi_row_sums = None if row_sums is None else (
+            float(row_sums[0]), float(row_sums[1]))
         self.chunk = int(chunk)
         self.horizon, self.n_trajectories, self.n_features = phi.shape
         # Phi_h^T Phi_h of every step (float64, no ridge), a cache: stored with the data, or
@@ -240,4 +244,5 @@ class StepSource:
                               phi.take(idx))
         return StepSource(phi, ArrayField(self.rewards.take(idx)),
                           self.next.take(idx), extras, self.nonnegative_phi, self.chunk,
-                          unit_rows=self.unit_rows, reward_noise=self.reward_noise)
+                          unit_rows=self.unit_rows, reward_noise=self.reward_noise,
+                          row_sums=self.phi_row_sums)  # a subset's sums lie in the range

@@ -213,6 +213,7 @@ class DatasetWriter:
                 fields["next_values"] = ((H, K, A), np.float64)
             grams = np.zeros((H, d, d))
             sums = np.zeros((H, d))
+            row_sums = [np.inf, -np.inf]
             for name, (shape, dt) in fields.items():
                 shards = [FileField(tmp / f"shard{i:06d}" / f"{name}.npy") if
                           (name != "next_values" or has) else None
@@ -224,7 +225,7 @@ class DatasetWriter:
                             rows = (np.full((k, A), np.nan) if f is None else f.read(h))
                             fh.write(np.ascontiguousarray(rows, dtype=dt).tobytes())
                             if name == "phi":
-                                _add_gram(grams[h], rows, sums[h])
+                                _add_gram(grams[h], rows, sums[h], row_sums)
                 for f in shards:
                     if f is not None:
                         f.close()
@@ -247,8 +248,11 @@ class DatasetWriter:
                 "dtype": self.dtype.name, "next": "behaviour" if behaviour else "stored",
                 "files": {**files, "gram": GRAM_FILE, "phi_sums": SUMS_FILE}, "shapes": shapes,
                 "extras": [], "nonnegative_phi": fl[4], "nonnegative_next_phi": fl[5],
-                "reward_range": [float(x) for x in self._reward_range], **extra,
+                "reward_range": [float(x) for x in self._reward_range],
+                **extra,
             }
+            if np.isfinite(row_sums).all():
+                manifest["phi_row_sums"] = [float(x) for x in row_sums]
             if self.reward_noise:
                 manifest["reward_noise"] = self.reward_noise
             return _finish(tmp, self.path, manifest, self.overwrite)
