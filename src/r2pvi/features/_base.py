@@ -9,7 +9,20 @@ import numpy as np
 
 from .._compat import KeywordParams, not_fitted_error
 
-__all__ = ["ObservationTransformer", "as_observations", "check_positive_int_or_seq"]
+__all__ = ["ObservationTransformer", "as_observations", "check_positive_int_or_seq",
+           "SAVEABLE_MAPS", "register_saveable"]
+
+#: The feature-map classes that :func:`~r2pvi.features.save_feature_map` writes and
+#: :func:`~r2pvi.features.load_feature_map` rebuilds, by class name: r2pvi's own
+#: :class:`ObservationTransformer` subclasses register themselves (``__init_subclass__``),
+#: the action crossing through :func:`register_saveable`.
+SAVEABLE_MAPS: dict[str, type] = {}
+
+
+def register_saveable(cls: type) -> type:
+    """Record an r2pvi feature-map class as one a model file may name (class decorator)."""
+    SAVEABLE_MAPS[cls.__name__] = cls
+    return cls
 
 
 def as_observations(X, name: str = "observations", n_dims: int | None = None) -> np.ndarray:
@@ -69,6 +82,12 @@ class ObservationTransformer(KeywordParams):
     observation ranges (``low_``, ``high_``) and returns ``self``; :meth:`transform` maps
     observations ``(n, D)`` to features ``(n, m)`` whose rows lie on the probability simplex.
     """
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.__module__.startswith("r2pvi.features."):  # r2pvi's own maps, not users'
+            register_saveable(cls)
+
 
     sparse = False
 
@@ -152,15 +171,6 @@ class ObservationTransformer(KeywordParams):
     def transform(self, X):
         """Features of the observations ``X (n, D)``: ``(n, n_features_out_)``."""
         raise NotImplementedError
-
-    def save(self, path):
-        """Save the fitted map to a versioned ``.npz`` (no pickle); returns the path.
-
-        Load it with :func:`r2pvi.features.load_feature_map`.
-        """
-        from ._io import save_feature_map
-
-        return save_feature_map(self, path)
 
     def fit_transform(self, X, y=None):
         """``fit(X)`` then ``transform(X)``."""

@@ -8,16 +8,16 @@ import numpy as np
 
 from .._compat import not_fitted_error
 from .._io import load_npz, save_npz
+from ._base import SAVEABLE_MAPS
 
-__all__ = ["save_feature_map", "load_feature_map"]
+__all__ = ["save_feature_map", "load_feature_map", "SaveableMap"]
 
 FEATURE_MAP_FORMAT_VERSION = 1
 
 
 def _registry() -> dict:
-    from .maps import NormalizedRBF, StateAggregation, TileCoding
-
-    return {c.__name__: c for c in (NormalizedRBF, TileCoding, StateAggregation)}
+    """The saveable observation maps (the action crossing is the file's outer layer)."""
+    return {n: c for n, c in SAVEABLE_MAPS.items() if n != "ActionCrossing"}
 
 
 def _encode(state_map, prefix: str, arrays: dict) -> dict:
@@ -84,10 +84,8 @@ def save_feature_map(feature_map, path):
     >>> bool((back(X, np.ones(50, int)) == fmap(X, np.ones(50, int))).all())
     True
     """
-    from .maps import ActionCrossing
-
     arrays: dict = {}
-    if isinstance(feature_map, ActionCrossing):
+    if isinstance(feature_map, SAVEABLE_MAPS["ActionCrossing"]):
         meta = {"state_map": _encode(feature_map.state_map, "state_", arrays),
                 "n_actions": feature_map.n_actions}
     else:
@@ -97,9 +95,19 @@ def save_feature_map(feature_map, path):
 
 def load_feature_map(path):
     """Load a feature map written by :func:`save_feature_map` (fitted, ready to transform)."""
-    from .maps import ActionCrossing
-
     arrays, header = load_npz(path, "feature_map", FEATURE_MAP_FORMAT_VERSION)
     state_map = _decode(header["state_map"], "state_", arrays)
     n_actions = header.get("n_actions")
-    return state_map if n_actions is None else ActionCrossing(state_map, int(n_actions))
+    crossing = SAVEABLE_MAPS["ActionCrossing"]
+    return state_map if n_actions is None else crossing(state_map, int(n_actions))
+
+
+class SaveableMap:
+    """Mixin of r2pvi's feature maps: ``save(path)`` writes :func:`save_feature_map`'s file."""
+
+    def save(self, path):
+        """Save the fitted map to a versioned ``.npz`` (no pickle); returns the path.
+
+        Load it with :func:`r2pvi.features.load_feature_map`.
+        """
+        return save_feature_map(self, path)

@@ -22,7 +22,9 @@ from ._base import (
     ObservationTransformer,
     check_positive_int_or_seq,
     grid_indices,
+    register_saveable,
 )
+from ._io import SaveableMap
 
 __all__ = [
     "NormalizedRBF",
@@ -34,7 +36,7 @@ __all__ = [
 ]
 
 
-class NormalizedRBF(ObservationTransformer):
+class NormalizedRBF(SaveableMap, ObservationTransformer):
     """Normalized Gaussian RBF features: ``psi_j(x) = softmax_j(-||z - c_j||^2 / (2 s^2))``.
 
     Observations are first scaled to the unit box ``z = (x - low) / (high - low)`` with the
@@ -113,7 +115,7 @@ class NormalizedRBF(ObservationTransformer):
         return logits
 
 
-class TileCoding(ObservationTransformer):
+class TileCoding(SaveableMap, ObservationTransformer):
     """Tile coding averaged over tilings: ``psi(x) = (1/T) sum_t onehot(tile_t(x))``.
 
     Each of the ``n_tilings`` grids has ``n_tiles + 1`` tiles per dimension and is shifted by
@@ -191,7 +193,7 @@ class TileCoding(ObservationTransformer):
         return _rows_from_columns(cols, self.n_features_out_, bool(self.sparse))
 
 
-class StateAggregation(ObservationTransformer):
+class StateAggregation(SaveableMap, ObservationTransformer):
     """Hard state aggregation: the one-hot cell of a grid of ``n_bins`` per dimension.
 
     Observations outside the learned range fall in the edge cells.
@@ -226,7 +228,8 @@ class StateAggregation(ObservationTransformer):
         return _rows_from_columns(idx[:, None], self.n_features_out_, False)
 
 
-class ActionCrossing:
+@register_saveable
+class ActionCrossing(SaveableMap):
     """``phi(s, a) = e_a (x) psi(s)``: observation features placed in the block of the action.
 
     With ``psi`` on the simplex, so is ``phi`` (dimension ``n_actions * m``). The result is
@@ -309,12 +312,6 @@ class ActionCrossing:
         out = np.zeros((n, self.n_actions * m))
         out[np.arange(n)[:, None], a[:, None] * m + np.arange(m)] = psi
         return out
-
-    def save(self, path):
-        """Save the fitted crossing (its observation map and ``n_actions``); returns the path."""
-        from ._io import save_feature_map
-
-        return save_feature_map(self, path)
 
     @property
     def n_features_out_(self) -> int:
