@@ -179,7 +179,8 @@ class OfflineDataset:
                                 _st.StoredNext(_st.ArrayField(n), known, nonneg_next),
                                 extras, nonneg_phi, unit_rows=unit,
                                 reward_range=reward_range, row_sums=row_sums,
-                                reward_noise=_st.check_reward_noise(reward_noise))
+                                reward_noise=_st.check_reward_noise(reward_noise),
+                                checked=("phi", "rewards", "next"))
         return cls(_source=source)
 
     @classmethod
@@ -261,7 +262,8 @@ class OfflineDataset:
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi,
                                 unit_rows=unit, reward_range=reward_range, row_sums=row_sums,
-                                reward_noise=_st.check_reward_noise(reward_noise))
+                                reward_noise=_st.check_reward_noise(reward_noise),
+                                checked=("phi", "rewards", "next"))
         return cls(_source=source)
 
     @classmethod
@@ -346,8 +348,10 @@ class OfflineDataset:
             check_simplex_features(first, "phi")
             if H > 1:
                 check_simplex_features(nxt.features(0, 0, _st.CHUNK), "next_phi")
+        # the rewards are checked here; the features, computed while fitting, by the fit
         return cls(_source=_st.StepSource(phi, _st.ArrayField(r), nxt, {},
-                                          reward_range=(float(r.min()), float(r.max()))))
+                                          reward_range=(float(r.min()), float(r.max())),
+                                          checked=("rewards",)))
 
     @classmethod
     def from_dask(cls, phi, rewards, next_phi, next_values=None) -> OfflineDataset:

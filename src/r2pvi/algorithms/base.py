@@ -20,6 +20,7 @@ from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
 from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
+from ..storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY", "check_reward_range"]
 
@@ -285,13 +286,6 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         return est
 
 
-# Rewards may pass the bounds [0, r_max] by this much relative rounding: r_max (1 + 1e-12),
-# and noisy rewards (OfflineDataset.reward_noise = sigma) by REWARD_NOISE_Z sigma more: a
-# Gaussian sample lies that far out with probability 1.2e-15.
-REWARD_RTOL = 1e-12
-REWARD_NOISE_Z = 8.0
-
-
 def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=None) -> None:
     """Refuse rewards outside ``[0, r_max]`` (noisy ones beyond their noise, see
     :attr:`~r2pvi.OfflineDataset.reward_noise`): every estimator clips ``Q_h`` to
@@ -300,7 +294,9 @@ def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=Non
     an arbitrary policy when every reward is out of range.
 
     The rewards' range is the dataset's :attr:`~r2pvi.OfflineDataset.reward_range` (taken
-    when the data was validated or written: no pass over the features). With
+    when the data was validated or written: no pass over the features); rewards the dataset
+    did not check when it was built (a directory's files, Dask arrays) are checked again,
+    step by step, by the fit as it reads them (finite and in range). With
     ``reward_weights`` the rewards are ``phi_h^T theta_h`` on the data: on simplex features
     they lie in ``[min_i theta_hi, max_i theta_hi]``, which settles most steps without reading
     a feature; other steps are computed (one product ``phi_h theta_h``).
@@ -379,6 +375,10 @@ def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: fl
         if not (low_ok <= bounds[0] and bounds[1] <= high_ok):
             r = dataset._step_product(h, t)
             bounds = (float(r.min()), float(r.max())) if r.size else (0.0, 0.0)
+            if not np.isfinite(bounds).all() and source is not None:  # features not checked
+                err = source.phi_error(h)
+                if err is not None:
+                    raise err
         low, high = min(low, bounds[0]), max(high, bounds[1])
     return low, high
 
