@@ -24,6 +24,7 @@ the next-state data is ignored; files store zeros there), so they never enter a 
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -595,72 +596,76 @@ def backward_induction(
     chunked = _streams(source, form, time_homogeneous)
     buffers: dict = {}
     step_buffer = None
+    # Unchecked data may hold infinities until a step's checks find them: their arithmetic
+    # (inf * 0, inf - inf) must not warn first.
+    quiet = np.errstate(invalid="ignore", over="ignore") if checked != FIELDS else nullcontext()
     try:
-        for h in range(H - 1, -1, -1):
-            if time_homogeneous:
-                phi, rewards, next_phi, next_known = pooled
-            elif source is None:
-                phi, rewards, next_phi, next_known = dataset.step(h)
-            else:  # next-state data: by chunk; the rewards only when theta is estimated
-                rewards = source.rewards_step(h) if reward_weights is None else None
-                if rewards is not None:
-                    source.check_rewards(h, rewards, r_max)
-                if not chunked:
-                    phi = step_buffer = source.phi_step(h, step_buffer)
-            sw = None if sample_weights is None else sample_weights[h]
-            # ---- linear algebra: the step's factor (pooled and unweighted: factored once)
-            if chunked:
-                # Lambda and every regression of the step in as few reads as possible: the
-                # rewards (and moments) ride along with the first pass.
-                E = ChunkedRidgeExpectation(source, h, gamma, sw, nonneg_phi, buffers)
-                factor = None
-                if reward_weights is None:
-                    E.include(rewards)
-                theta = None
-                inv_diag = None
-            elif E is None or not time_homogeneous or sw is not None:
-                factor = _factor(source, None if time_homogeneous else h, phi, gamma, sw, form)
-                E = RidgeExpectation(phi, factor, sw, nonneg_phi)
-                theta = E(rewards) if reward_weights is None else None
-                inv_diag = None
-            if reward_weights is not None:
-                theta = reward_weights[h]
-            if h == H - 1:
-                w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for every divergence
-            else:
-                qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
-                                  None if ellip is None else ellip[h + 1], (H - h - 1) * r_max,
-                                  check="next" not in checked)
-                if time_homogeneous or source is None:
-                    try:
-                        v_next = qmax(next_phi, next_known, nonneg)
-                    except NonFiniteRows as exc:  # pooled rows: step-major
-                        step, k = divmod(exc.index[0], dataset.n_trajectories)
-                        raise source.next.nonfinite(step, 0, NonFiniteRows(
-                            (k,) + exc.index[1:], exc.value, exc.known)) from None
-                    next_state_values[h] = v_next
-                else:  # written in place: no K-sized temporary
-                    v_next = source.next_state_values(h, qmax, out=next_state_values[h])
-                if value_moments:  # only the variance-aware variants need them
-                    if chunked:
-                        both = np.stack([v_next, v_next * v_next], axis=1)
-                        E.include(both)
-                    else:
-                        moments[h] = np.stack([E(v_next), E(v_next * v_next)], axis=1)
-                w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
-                if value_moments and chunked:
-                    moments[h] = E(both)
-            if theta is None:  # a chunked step: after the rule, whose first pass computed it
-                theta = E(rewards)
-            if inv_diag is None:  # after the rule: reuses what the rule formed (dual form)
-                inv_diag = E.inverse_diagonal()
-                step_ellip = (E.factor if factor is None else factor).elliptical_factor() \
-                    if ellip is not None else None
-            weights[h] = theta + w
-            thetas[h] = theta
-            inv_diags[h] = inv_diag
-            if ellip is not None:
-                ellip[h] = step_ellip
+        with quiet:
+            for h in range(H - 1, -1, -1):
+                if time_homogeneous:
+                    phi, rewards, next_phi, next_known = pooled
+                elif source is None:
+                    phi, rewards, next_phi, next_known = dataset.step(h)
+                else:  # next-state data: by chunk; the rewards only when theta is estimated
+                    rewards = source.rewards_step(h) if reward_weights is None else None
+                    if rewards is not None:
+                        source.check_rewards(h, rewards, r_max)
+                    if not chunked:
+                        phi = step_buffer = source.phi_step(h, step_buffer)
+                sw = None if sample_weights is None else sample_weights[h]
+                # ---- linear algebra: the step's factor (pooled and unweighted: factored once)
+                if chunked:
+                    # Lambda and every regression of the step in as few reads as possible: the
+                    # rewards (and moments) ride along with the first pass.
+                    E = ChunkedRidgeExpectation(source, h, gamma, sw, nonneg_phi, buffers)
+                    factor = None
+                    if reward_weights is None:
+                        E.include(rewards)
+                    theta = None
+                    inv_diag = None
+                elif E is None or not time_homogeneous or sw is not None:
+                    factor = _factor(source, None if time_homogeneous else h, phi, gamma, sw, form)
+                    E = RidgeExpectation(phi, factor, sw, nonneg_phi)
+                    theta = E(rewards) if reward_weights is None else None
+                    inv_diag = None
+                if reward_weights is not None:
+                    theta = reward_weights[h]
+                if h == H - 1:
+                    w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for any divergence
+                else:
+                    qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
+                                      None if ellip is None else ellip[h + 1], (H - h - 1) * r_max,
+                                      check="next" not in checked)
+                    if time_homogeneous or source is None:
+                        try:
+                            v_next = qmax(next_phi, next_known, nonneg)
+                        except NonFiniteRows as exc:  # pooled rows: step-major
+                            step, k = divmod(exc.index[0], dataset.n_trajectories)
+                            raise source.next.nonfinite(step, 0, NonFiniteRows(
+                                (k,) + exc.index[1:], exc.value, exc.known)) from None
+                        next_state_values[h] = v_next
+                    else:  # written in place: no K-sized temporary
+                        v_next = source.next_state_values(h, qmax, out=next_state_values[h])
+                    if value_moments:  # only the variance-aware variants need them
+                        if chunked:
+                            both = np.stack([v_next, v_next * v_next], axis=1)
+                            E.include(both)
+                        else:
+                            moments[h] = np.stack([E(v_next), E(v_next * v_next)], axis=1)
+                    w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
+                    if value_moments and chunked:
+                        moments[h] = E(both)
+                if theta is None:  # a chunked step: after the rule, whose first pass computed it
+                    theta = E(rewards)
+                if inv_diag is None:  # after the rule: reuses what the rule formed (dual form)
+                    inv_diag = E.inverse_diagonal()
+                    step_ellip = (E.factor if factor is None else factor).elliptical_factor() \
+                        if ellip is not None else None
+                weights[h] = theta + w
+                thetas[h] = theta
+                inv_diags[h] = inv_diag
+                if ellip is not None:
+                    ellip[h] = step_ellip
     finally:
         release()  # the duals' reusable work buffers
     return FittedModel(weights, thetas, inv_diags, ellip, next_state_values,

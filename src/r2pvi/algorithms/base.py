@@ -317,6 +317,8 @@ def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=Non
     tol = REWARD_RTOL * r_max
     if reward_weights is None:
         low, high = dataset.reward_range
+        if not np.isfinite([low, high]).all():
+            return  # rewards not checked when built: the fit names the bad one as it reads it
         what, where = "rewards", ""
         noise = REWARD_NOISE_Z * dataset.reward_noise
         if noise:
