@@ -279,7 +279,9 @@ class OfflineDataset:
         held for the whole dataset (a step's ``(K, d)`` taken-action features are). Arrays
         (memory maps included) are kept as step-major views when they are laid out so, else
         copied once. :meth:`save` stores the observations; :meth:`open` then needs the same
-        ``feature_map``.
+        ``feature_map``. The rewards are checked here; the features, computed while fitting,
+        by the fit (a ``feature_map`` that returns NaN or an infinity is a ``ValueError``
+        naming the step, trajectory and feature).
 
         Parameters
         ----------
@@ -360,8 +362,9 @@ class OfflineDataset:
         Takes the shapes of :meth:`from_features` (``phi (K, H, d)``, ...) as Dask arrays;
         nothing is computed here. Fitting reads one step at a time: the next-state values are
         computed on the workers, chunk by chunk, and only a step's ``(K, d)`` features and
-        ``K`` values come back. Validate the data before (or build it with
-        :meth:`from_features` and convert). Fits equal the in-memory fits to rounding.
+        ``K`` values come back. Nothing is checked here: a fit checks every number it uses
+        as it reads it (finite; rewards in ``[0, r_max]``) and names the first bad entry
+        (step, trajectory, feature). Fits equal the in-memory fits to rounding.
         """
         try:
             import dask.array as da

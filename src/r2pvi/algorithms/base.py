@@ -7,6 +7,7 @@ validates them and returns ``self``, fitted attributes end with ``_``, and
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import numbers
 
@@ -361,6 +362,8 @@ def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: fl
     # directory's manifest; e.g. float32 rows, 1 within ~1e-7): phi^T theta lies in
     # [min(s t_min), max(s t_max)]
     sums = getattr(source, "phi_row_sums", None) if nonneg and not simplex else None
+    # features not checked when the dataset was built: an infinity is named below, not warned
+    unchecked = source is not None and "phi" not in source.checked
     low, high = np.inf, -np.inf
     for h in range(dataset.horizon):
         t = theta[h]
@@ -375,7 +378,9 @@ def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: fl
         else:
             bounds = (-np.inf, np.inf)
         if not (low_ok <= bounds[0] and bounds[1] <= high_ok):
-            r = dataset._step_product(h, t)
+            with np.errstate(invalid="ignore", over="ignore") if unchecked else (
+                    contextlib.nullcontext()):
+                r = dataset._step_product(h, t)
             bounds = (float(r.min()), float(r.max())) if r.size else (0.0, 0.0)
             if not np.isfinite(bounds).all() and source is not None:  # features not checked
                 err = source.phi_error(h)

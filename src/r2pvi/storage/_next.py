@@ -284,7 +284,9 @@ def _dask_values(nxt: StoredNext, h, qmax):
         f = np.asarray(f, dtype=np.float64)
         nn = bool((f >= 0).all()) if nonneg is None else nonneg
         try:
-            return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64), nn)
+            with np.errstate(invalid="ignore", over="ignore"):  # not inherited from the fit
+                return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64),
+                            nn)
         except NonFiniteRows as exc:  # the block's first trajectory, from Dask
             start = 0 if block_info is None else block_info[0]["array-location"][0][0]
             raise nxt.nonfinite(h, int(start), exc) from None

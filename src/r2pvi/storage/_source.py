@@ -27,6 +27,18 @@ from ._reads import _prefetched
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
 
 
+def _quiet():
+    """Dask's worker threads do not inherit the fit's ``np.errstate``: unchecked data may hold
+    infinities, whose products (``inf * 0``) must not warn before the fit's checks name them.
+    A new context each time (one ``errstate`` must not be entered by two threads at once)."""
+    return np.errstate(invalid="ignore", over="ignore")
+
+
+def _quiet_product(b, z):
+    with _quiet():
+        return np.asarray(b, dtype=np.float64) @ z
+
+
 def _dask_products(field: DaskField, h, cols, weights, with_gram):
     """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` summed on the Dask workers.
 
@@ -55,10 +67,11 @@ def _dask_products(field: DaskField, h, cols, weights, with_gram):
     def block(xb, yb):
         xb = np.asarray(xb, dtype=np.float64)
         out = np.empty((d, width))
-        if with_gram:
-            xw = xb if weights is None else xb * yb[:, m:]
-            out[:, :d] = xw.T @ xb
-        out[:, g:] = xb.T @ yb[:, :m]
+        with _quiet():  # an infinity in the data is named by the client's check of the sums
+            if with_gram:
+                xw = xb if weights is None else xb * yb[:, m:]
+                out[:, :d] = xw.T @ xb
+            out[:, g:] = xb.T @ yb[:, :m]
         return out.reshape(1, d * width)
 
     nb = len(x.chunks[0])
@@ -221,7 +234,7 @@ class StepSource:
         field = self.phi
         if isinstance(field, DaskField):
             x = field.step_rows(h)
-            out = x.map_blocks(lambda b: np.asarray(b, dtype=np.float64) @ z,
+            out = x.map_blocks(lambda b: _quiet_product(b, z),
                                chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
                                drop_axis=None if z.ndim == 2 else 1)
             return np.asarray(out.compute(), dtype=np.float64)
