@@ -269,3 +269,30 @@ def test_in_memory_datasets_are_checked_once_when_built():
             np.zeros((K, H, 1)), np.zeros((K, H), int), rewards, np.zeros((K, H, 1)),
             lambda x, a: np.ones((len(x), 2)), A)
     assert obs._source.checked == {"rewards"}  # the features are computed while fitting
+
+
+@pytest.mark.parametrize("source", ["directory", "dask"])
+@pytest.mark.parametrize("field", ["phi", "next_phi"])
+def test_an_infinity_beside_zeros_is_named_not_warned(tmp_path, source, field):
+    """One-hot rows and zero weights: ``inf * 0`` is NaN and warns; the fit names the entry
+    instead (the suite turns RuntimeWarnings into errors)."""
+    rng = np.random.default_rng(4)
+    phi = np.eye(D)[rng.integers(D, size=(K, H))]
+    nphi = np.eye(D)[rng.integers(D, size=(K, H, A))]
+    rewards = np.where(rng.random((K, H)) < 0.5, 0.0, 0.5)
+    index = (5, 1, 3) if field == "phi" else (5, 0, 1, 3)
+    arrays = {"phi": phi, "rewards": rewards, "next_phi": nphi}
+    arrays[field][index] = -np.inf
+    if source == "dask":
+        da = pytest.importorskip("dask.array")
+        ds = OfflineDataset.from_dask(*(da.from_array(arrays[k], chunks=(8,) + arrays[k].shape[1:])
+                                        for k in ("phi", "rewards", "next_phi")))
+    else:
+        arrays[field][index] = 0.0
+        OfflineDataset.from_features(phi, rewards, nphi).save(tmp_path / "ds")
+        _damage(tmp_path / "ds", f"{field}.npy", (index[1], index[0]) + index[2:], -np.inf)
+        ds = OfflineDataset.open(tmp_path / "ds")
+    theta = np.zeros((H, D))
+    for est in (R2PVI("tv", 0.5), R2PVI("tv", 0.5, reward_weights=theta), R2PVI("chi2", 0.5)):
+        with pytest.raises(ValueError, match=r"holds -inf.*trajectory 5"):
+            est.fit(ds)
