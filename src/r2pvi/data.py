@@ -179,7 +179,8 @@ class OfflineDataset:
                                 _st.StoredNext(_st.ArrayField(n), known, nonneg_next),
                                 extras, nonneg_phi, unit_rows=unit,
                                 reward_range=reward_range, row_sums=row_sums,
-                                reward_noise=_st.check_reward_noise(reward_noise))
+                                reward_noise=_st.check_reward_noise(reward_noise),
+                                checked=("phi", "rewards", "next"))
         return cls(_source=source)
 
     @classmethod
@@ -261,7 +262,8 @@ class OfflineDataset:
         source = _st.StepSource(_st.ArrayField(p), _st.ArrayField(r),
                                 _st.TableNext(_st.ArrayField(ix), tab, kt), extras, nonneg_phi,
                                 unit_rows=unit, reward_range=reward_range, row_sums=row_sums,
-                                reward_noise=_st.check_reward_noise(reward_noise))
+                                reward_noise=_st.check_reward_noise(reward_noise),
+                                checked=("phi", "rewards", "next"))
         return cls(_source=source)
 
     @classmethod
@@ -277,7 +279,9 @@ class OfflineDataset:
         held for the whole dataset (a step's ``(K, d)`` taken-action features are). Arrays
         (memory maps included) are kept as step-major views when they are laid out so, else
         copied once. :meth:`save` stores the observations; :meth:`open` then needs the same
-        ``feature_map``.
+        ``feature_map``. The rewards are checked here; the features, computed while fitting,
+        by the fit (a ``feature_map`` that returns NaN or an infinity is a ``ValueError``
+        naming the step, trajectory and feature).
 
         Parameters
         ----------
@@ -346,8 +350,10 @@ class OfflineDataset:
             check_simplex_features(first, "phi")
             if H > 1:
                 check_simplex_features(nxt.features(0, 0, _st.CHUNK), "next_phi")
+        # the rewards are checked here; the features, computed while fitting, by the fit
         return cls(_source=_st.StepSource(phi, _st.ArrayField(r), nxt, {},
-                                          reward_range=(float(r.min()), float(r.max()))))
+                                          reward_range=(float(r.min()), float(r.max())),
+                                          checked=("rewards",)))
 
     @classmethod
     def from_dask(cls, phi, rewards, next_phi, next_values=None) -> OfflineDataset:
@@ -356,8 +362,9 @@ class OfflineDataset:
         Takes the shapes of :meth:`from_features` (``phi (K, H, d)``, ...) as Dask arrays;
         nothing is computed here. Fitting reads one step at a time: the next-state values are
         computed on the workers, chunk by chunk, and only a step's ``(K, d)`` features and
-        ``K`` values come back. Validate the data before (or build it with
-        :meth:`from_features` and convert). Fits equal the in-memory fits to rounding.
+        ``K`` values come back. Nothing is checked here: a fit checks every number it uses
+        as it reads it (finite; rewards in ``[0, r_max]``) and names the first bad entry
+        (step, trajectory, feature). Fits equal the in-memory fits to rounding.
         """
         try:
             import dask.array as da

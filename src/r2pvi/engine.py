@@ -24,6 +24,7 @@ the next-state data is ignored; files store zeros there), so they never enter a 
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -33,11 +34,13 @@ from .data import OfflineDataset
 from .duals._scratch import release
 from .duals.operators import (
     GramFactor,
+    GramMatrixError,
     RidgeExpectation,
     choose_form,
     ridge_cholesky,
 )
 from .sparse import StackedSparse, stack_rows
+from .storage._finite import FIELDS, NonFiniteRows, check_next_products
 
 __all__ = [
     "StepRule",
@@ -164,11 +167,14 @@ def penalty_values(phi, kind: str, beta: float, inv_diag, ellip=None) -> np.ndar
     return beta * np.asarray(out).reshape(lead)
 
 
-def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonneg=None):
+def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonneg=None,
+            check=False):
     """``clip(phi^T w - Gamma(phi), 0, upper)``, with known values where not NaN.
 
     ``ellip`` is the step's elliptical factor (only read by the "elliptical" penalty);
-    ``phi`` is ``(..., d)`` dense or :class:`~r2pvi.sparse.StackedSparse`.
+    ``phi`` is ``(..., d)`` dense or :class:`~r2pvi.sparse.StackedSparse`. ``check`` refuses
+    non-finite features where no value is known, and infinite known values
+    (:func:`~r2pvi.storage._finite.check_next_products`), before the clip would hide them.
     """
     flat, lead = _rows(phi)  # one GEMM, not a batch of small products
     if kind == "l1" and beta != 0.0:
@@ -180,6 +186,8 @@ def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonn
     else:
         q = np.asarray(flat @ weights_h) - penalty_values(flat, kind, beta, inv_diag, ellip)
     q = np.asarray(q).reshape(lead)
+    if check and isinstance(phi, np.ndarray):
+        check_next_products(q, phi, known)
     np.clip(q, 0.0, upper, out=q)
     if known is not None:
         q = np.where(np.isnan(known), q, known)
@@ -201,11 +209,14 @@ class _NextValue:
     source calls it chunk by chunk (or once on a feature table). A class, not a closure, so
     that Dask can ship it to the workers."""
 
-    def __init__(self, weights_h, kind, beta, inv_diag, chol, upper):
+    def __init__(self, weights_h, kind, beta, inv_diag, chol, upper, check=False):
         self.args = (weights_h, kind, beta, inv_diag, chol, upper)
+        # refuse non-finite features (storage._finite.NonFiniteRows): data not checked when
+        # the dataset was built
+        self.check = bool(check)
 
     def __call__(self, feats, known, nonneg):
-        return _max_over_actions(_q_step(feats, *self.args, known, nonneg))
+        return _max_over_actions(_q_step(feats, *self.args, known, nonneg, self.check))
 
     def linear(self, nonneg) -> tuple[np.ndarray, float] | None:
         """``(u, upper)`` when ``V = clip(max_a phi_a^T u, 0, upper)`` on features with no known
@@ -277,6 +288,9 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         self._pending: list[np.ndarray] = []
         self._done: list[tuple[np.ndarray, np.ndarray]] = []
         self.passes = 0  # reads of the step's features (a diagnostic)
+        # Whether the step's features are known finite: checked when the dataset was built,
+        # or by the sums of a pass (see _check_sums)
+        self._finite = "phi" in getattr(source, "checked", FIELDS)
 
     # ------------------------------------------------------------------ lazy pieces
     @property
@@ -297,14 +311,19 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         if self._rows is None:
             rows = self.source.phi_step(self.h, self.buffers.get("phi"))
             self.buffers["phi"] = rows
+            formed = None
             if self._factor is None:
                 w = self.weights
                 gram = None if w is not None else self.source.gram(self.h)
                 if gram is None:
-                    gram = (rows if w is None else rows * w[:, None]).T @ rows
+                    gram = formed = (rows if w is None else rows * w[:, None]).T @ rows
+                    self._check_sums([formed], rows)
                     if w is None:
                         self.source.remember_gram(self.h, gram)
                 self._factor = _primal_factor(gram, self.gamma, w, rows.shape)
+            if formed is None:  # the rows' own sums (one pass in memory) when not known finite
+                self._check_sums([np.add.reduce(rows, axis=0)] if not self._finite else [],
+                                 rows)
             self._factor.phi = rows  # from now on a plain primal factor over the rows
             self._rows = rows
         return self._rows
@@ -428,6 +447,7 @@ class ChunkedRidgeExpectation(RidgeExpectation):
                 else:
                     a += rows.T @ (c[s:e].T * w[s:e]).T
         self.passes += 1
+        self._check_sums([gram, colsum] + acc)
         if from_gram:
             colsum = gram.sum(axis=1)
         if colsum is not None:
@@ -450,6 +470,22 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         self._done.extend(zip(registered, out[len(out) - len(registered):], strict=True))
         self._pending = []
         return out[0] if y is not None else None
+
+
+    def _check_sums(self, sums, rows=None) -> None:
+        """Refuse the step's features when a sum formed from them (the Gram matrix, ``Phi^T
+        W y``: a NaN or an infinity in a row makes them non-finite) is not finite and the
+        features were not checked when the dataset was built; the step's features (``rows``,
+        or read again by chunk) are searched only then. The sums' inputs besides the
+        features (rewards, values) are checked before they get here."""
+        if self._finite:
+            return
+        if not all(np.isfinite(x).all() for x in sums if x is not None):
+            err = self.source.phi_error(self.h, rows)
+            if err is not None:
+                raise err
+            return  # finite features whose sums overflowed: not a data error
+        self._finite = any(x is not None for x in sums)
 
 
 def _primal_factor(gram, gamma, weights, shape) -> GramFactor:
@@ -544,6 +580,13 @@ def backward_induction(
     moments = np.zeros((H, d, 2))
     # ---- data access: one step's arrays, or every step's pooled (the only data path here)
     pooled = _pooled_steps(dataset) if time_homogeneous else None
+    # What the dataset did not check when it was built (files, Dask arrays, feature maps) is
+    # checked as the fit reads it: see storage._finite.
+    checked = FIELDS if source is None else source.checked
+    if pooled is not None and reward_weights is None and "rewards" not in checked:
+        K = dataset.n_trajectories
+        for h in range(pooled_steps(H)):
+            source.check_rewards(h, pooled[1][h * K:(h + 1) * K], r_max)
     n_rows = dataset.n_trajectories * (pooled_steps(H) if time_homogeneous else 1)
     next_state_values = np.zeros((H, n_rows))
     v_upper = H * r_max
@@ -553,68 +596,102 @@ def backward_induction(
     chunked = _streams(source, form, time_homogeneous)
     buffers: dict = {}
     step_buffer = None
+    # Unchecked data may hold infinities until a step's checks find them: their arithmetic
+    # (inf * 0, inf - inf) must not warn first.
+    quiet = np.errstate(invalid="ignore", over="ignore") if checked != FIELDS else nullcontext()
     try:
-        for h in range(H - 1, -1, -1):
-            if time_homogeneous:
-                phi, rewards, next_phi, next_known = pooled
-            elif source is None:
-                phi, rewards, next_phi, next_known = dataset.step(h)
-            else:  # next-state data: by chunk; the rewards only when theta is estimated
-                rewards = source.rewards_step(h) if reward_weights is None else None
-                if not chunked:
-                    phi = step_buffer = source.phi_step(h, step_buffer)
-            sw = None if sample_weights is None else sample_weights[h]
-            # ---- linear algebra: the step's factor (pooled and unweighted: factored once)
-            if chunked:
-                # Lambda and every regression of the step in as few reads as possible: the
-                # rewards (and moments) ride along with the first pass.
-                E = ChunkedRidgeExpectation(source, h, gamma, sw, nonneg_phi, buffers)
-                factor = None
-                if reward_weights is None:
-                    E.include(rewards)
-                theta = None
-                inv_diag = None
-            elif E is None or not time_homogeneous or sw is not None:
-                factor = GramFactor(phi, gamma, sw, form)
-                E = RidgeExpectation(phi, factor, sw, nonneg_phi)
-                theta = E(rewards) if reward_weights is None else None
-                inv_diag = None
-            if reward_weights is not None:
-                theta = reward_weights[h]
-            if h == H - 1:
-                w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for every divergence
-            else:
-                qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
-                                  None if ellip is None else ellip[h + 1], (H - h - 1) * r_max)
-                if time_homogeneous or source is None:
-                    v_next = qmax(next_phi, next_known, nonneg)
-                    next_state_values[h] = v_next
-                else:  # written in place: no K-sized temporary
-                    v_next = source.next_state_values(h, qmax, out=next_state_values[h])
-                if value_moments:  # only the variance-aware variants need them
-                    if chunked:
-                        both = np.stack([v_next, v_next * v_next], axis=1)
-                        E.include(both)
-                    else:
-                        moments[h] = np.stack([E(v_next), E(v_next * v_next)], axis=1)
-                w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
-                if value_moments and chunked:
-                    moments[h] = E(both)
-            if theta is None:  # a chunked step: after the rule, whose first pass computed it
-                theta = E(rewards)
-            if inv_diag is None:  # after the rule: reuses what the rule formed (dual form)
-                inv_diag = E.inverse_diagonal()
-                step_ellip = (E.factor if factor is None else factor).elliptical_factor() \
-                    if ellip is not None else None
-            weights[h] = theta + w
-            thetas[h] = theta
-            inv_diags[h] = inv_diag
-            if ellip is not None:
-                ellip[h] = step_ellip
+        with quiet:
+            for h in range(H - 1, -1, -1):
+                if time_homogeneous:
+                    phi, rewards, next_phi, next_known = pooled
+                elif source is None:
+                    phi, rewards, next_phi, next_known = dataset.step(h)
+                else:  # next-state data: by chunk; the rewards only when theta is estimated
+                    rewards = source.rewards_step(h) if reward_weights is None else None
+                    if rewards is not None:
+                        source.check_rewards(h, rewards, r_max)
+                    if not chunked:
+                        phi = step_buffer = source.phi_step(h, step_buffer)
+                sw = None if sample_weights is None else sample_weights[h]
+                # ---- linear algebra: the step's factor (pooled and unweighted: factored once)
+                if chunked:
+                    # Lambda and every regression of the step in as few reads as possible: the
+                    # rewards (and moments) ride along with the first pass.
+                    E = ChunkedRidgeExpectation(source, h, gamma, sw, nonneg_phi, buffers)
+                    factor = None
+                    if reward_weights is None:
+                        E.include(rewards)
+                    theta = None
+                    inv_diag = None
+                elif E is None or not time_homogeneous or sw is not None:
+                    factor = _factor(source, None if time_homogeneous else h, phi, gamma, sw, form)
+                    E = RidgeExpectation(phi, factor, sw, nonneg_phi)
+                    theta = E(rewards) if reward_weights is None else None
+                    inv_diag = None
+                if reward_weights is not None:
+                    theta = reward_weights[h]
+                if h == H - 1:
+                    w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for any divergence
+                else:
+                    qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
+                                      None if ellip is None else ellip[h + 1], (H - h - 1) * r_max,
+                                      check="next" not in checked)
+                    if time_homogeneous or source is None:
+                        try:
+                            v_next = qmax(next_phi, next_known, nonneg)
+                        except NonFiniteRows as exc:  # pooled rows: step-major
+                            step, k = divmod(exc.index[0], dataset.n_trajectories)
+                            raise source.next.nonfinite(step, 0, NonFiniteRows(
+                                (k,) + exc.index[1:], exc.value, exc.known)) from None
+                        next_state_values[h] = v_next
+                    else:  # written in place: no K-sized temporary
+                        v_next = source.next_state_values(h, qmax, out=next_state_values[h])
+                    if value_moments:  # only the variance-aware variants need them
+                        if chunked:
+                            both = np.stack([v_next, v_next * v_next], axis=1)
+                            E.include(both)
+                        else:
+                            moments[h] = np.stack([E(v_next), E(v_next * v_next)], axis=1)
+                    w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
+                    if value_moments and chunked:
+                        moments[h] = E(both)
+                if theta is None:  # a chunked step: after the rule, whose first pass computed it
+                    theta = E(rewards)
+                if inv_diag is None:  # after the rule: reuses what the rule formed (dual form)
+                    inv_diag = E.inverse_diagonal()
+                    step_ellip = (E.factor if factor is None else factor).elliptical_factor() \
+                        if ellip is not None else None
+                weights[h] = theta + w
+                thetas[h] = theta
+                inv_diags[h] = inv_diag
+                if ellip is not None:
+                    ellip[h] = step_ellip
     finally:
         release()  # the duals' reusable work buffers
     return FittedModel(weights, thetas, inv_diags, ellip, next_state_values,
                        moments if value_moments else None)
+
+
+def _factor(source, h, phi, gamma, sw, form) -> GramFactor:
+    """``GramFactor(phi, ...)`` of step ``h``'s rows (the pooled rows: ``h`` None), refusing
+    non-finite features a source did not check when it was built: the Cholesky factor of a
+    finite Gram matrix is finite, so only a failed or non-finite factor has the rows
+    searched."""
+    if source is None or "phi" in source.checked or not isinstance(phi, np.ndarray):
+        return GramFactor(phi, gamma, sw, form)
+    try:
+        factor = GramFactor(phi, gamma, sw, form)
+    except GramMatrixError:
+        err = source.phi_error(h, phi)
+        if err is not None:
+            raise err from None
+        raise
+    chol = factor.chol if factor.form == "primal" else factor.dual_chol
+    if not np.isfinite(chol).all():
+        err = source.phi_error(h, phi)
+        if err is not None:
+            raise err
+    return factor
 
 
 def _apply_rule(rule: StepRule, E: RidgeExpectation, factor: GramFactor, v, ctx: StepContext):

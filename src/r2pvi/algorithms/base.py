@@ -7,6 +7,7 @@ validates them and returns ``self``, fitted attributes end with ``_``, and
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import numbers
 
@@ -20,6 +21,7 @@ from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
 from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
+from ..storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY", "check_reward_range"]
 
@@ -285,13 +287,6 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         return est
 
 
-# Rewards may pass the bounds [0, r_max] by this much relative rounding: r_max (1 + 1e-12),
-# and noisy rewards (OfflineDataset.reward_noise = sigma) by REWARD_NOISE_Z sigma more: a
-# Gaussian sample lies that far out with probability 1.2e-15.
-REWARD_RTOL = 1e-12
-REWARD_NOISE_Z = 8.0
-
-
 def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=None) -> None:
     """Refuse rewards outside ``[0, r_max]`` (noisy ones beyond their noise, see
     :attr:`~r2pvi.OfflineDataset.reward_noise`): every estimator clips ``Q_h`` to
@@ -300,7 +295,9 @@ def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=Non
     an arbitrary policy when every reward is out of range.
 
     The rewards' range is the dataset's :attr:`~r2pvi.OfflineDataset.reward_range` (taken
-    when the data was validated or written: no pass over the features). With
+    when the data was validated or written: no pass over the features); rewards the dataset
+    did not check when it was built (a directory's files, Dask arrays) are checked again,
+    step by step, by the fit as it reads them (finite and in range). With
     ``reward_weights`` the rewards are ``phi_h^T theta_h`` on the data: on simplex features
     they lie in ``[min_i theta_hi, max_i theta_hi]``, which settles most steps without reading
     a feature; other steps are computed (one product ``phi_h theta_h``).
@@ -321,6 +318,8 @@ def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=Non
     tol = REWARD_RTOL * r_max
     if reward_weights is None:
         low, high = dataset.reward_range
+        if not np.isfinite([low, high]).all():
+            return  # rewards not checked when built: the fit names the bad one as it reads it
         what, where = "rewards", ""
         noise = REWARD_NOISE_Z * dataset.reward_noise
         if noise:
@@ -363,6 +362,8 @@ def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: fl
     # directory's manifest; e.g. float32 rows, 1 within ~1e-7): phi^T theta lies in
     # [min(s t_min), max(s t_max)]
     sums = getattr(source, "phi_row_sums", None) if nonneg and not simplex else None
+    # features not checked when the dataset was built: an infinity is named below, not warned
+    unchecked = source is not None and "phi" not in source.checked
     low, high = np.inf, -np.inf
     for h in range(dataset.horizon):
         t = theta[h]
@@ -377,8 +378,14 @@ def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: fl
         else:
             bounds = (-np.inf, np.inf)
         if not (low_ok <= bounds[0] and bounds[1] <= high_ok):
-            r = dataset._step_product(h, t)
+            with np.errstate(invalid="ignore", over="ignore") if unchecked else (
+                    contextlib.nullcontext()):
+                r = dataset._step_product(h, t)
             bounds = (float(r.min()), float(r.max())) if r.size else (0.0, 0.0)
+            if not np.isfinite(bounds).all() and source is not None:  # features not checked
+                err = source.phi_error(h)
+                if err is not None:
+                    raise err
         low, high = min(low, bounds[0]), max(high, bounds[1])
     return low, high
 

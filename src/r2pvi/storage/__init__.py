@@ -44,7 +44,9 @@ rewards' ``reward_range`` [min, max] checked by ``fit`` against ``r_max``, the r
 ``phi_row_sums`` [min, max] of the stored taken-action rows' sums, and ``reward_noise``
 when the rewards are noisy samples).
 
-The modules, each importing only those listed before it: ``_fields`` (the fields, ``CHUNK``),
+The modules, each importing only those listed before it: ``_finite`` (what a fit checks in
+data not checked when the dataset was built, and the errors naming it), ``_fields`` (the
+fields, ``CHUNK``),
 ``_reads`` (a file step streamed by chunk: ``pread`` and a cast, or views of
 memory-mapped windows, ``MAP_WINDOW``), ``_next``
 (the next-state forms), ``_format`` (manifest, ``.npy`` headers, atomic directories),

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ._fields import ArrayField, Field, FileField, _as_float64
+from ._finite import Origin, array_origin, file_origin, nonfinite_error
 from ._format import _write_npy_header
 from ._next import NextStates, StoredNext
 
@@ -221,6 +222,31 @@ class BehaviourNext(NextStates):
         return None if self.next_values is None else _as_float64(
             self.next_values.read(h, start, stop))
 
+    def origin(self, known=False):
+        return (self.next_values.origin("next_values") if known
+                else self.rest.origin("next_rest"))
+
+    def nonfinite(self, h, s, exc):
+        """Name the file the bad row was rebuilt from: the next step's taken-action features,
+        the side table or the other actions' rows."""
+        if exc.known:
+            return super().nonfinite(h, s, exc)
+        i, a, j = exc.index
+        k = s + i
+        act = self._index(h)[0]
+        m = int(act[k])
+        if m == a:
+            origin, idx = self.phi.origin("phi"), [h + 1, k, j]
+        elif m < 0 and a == 0:
+            miss = self._index(h)[1][0]
+            row = int(self.offsets[h]) + int(np.count_nonzero(miss[:k]))
+            origin = (file_origin(self.side.path) if isinstance(self.side, RowFile)
+                      else array_origin("next_side"))
+            idx = [row, j]
+        else:
+            origin, idx = self.rest.origin("next_rest"), [h, k, a - (a > max(m, 0)), j]
+        return nonfinite_error(origin, h, k, exc.value, action=a, feature=j, file_index=idx)
+
     def values(self, h, qmax, n, chunk, out=None):
         index = self._index(h)
         A, d = self.n_actions, self.rest.shape[3]
@@ -242,7 +268,10 @@ class BehaviourNext(NextStates):
         idx = np.asarray(idx)
         feats = np.stack([self.features(h)[idx] for h in range(self.rest.shape[0])])
         nv = None if self.next_values is None else ArrayField(self.next_values.take(idx))
-        return StoredNext(ArrayField(feats), nv, self.nonnegative)
+        rebuilt = self.rest.origin("next_rest")
+        rebuilt = Origin(f"next_phi rebuilt from {rebuilt.label} and the files beside it "
+                         "(selected trajectories)", rebuilt.fix)
+        return StoredNext(ArrayField(feats, rebuilt), nv, self.nonnegative)
 
 
 def _behaviour_files(files, shapes, H, K, A, d, n_side):

@@ -12,6 +12,7 @@ from .._io import _held_kind
 from ._behaviour import BEHAVIOUR_VERSION, BehaviourNext, RowFile, _next_form, _write_behaviour
 from ._checks import check_float32_range
 from ._fields import Field, FileField, MappedField, widen_range
+from ._finite import file_origin
 from ._format import (
     FORMAT_VERSION,
     GRAM_FILE,
@@ -84,7 +85,9 @@ def open_directory(path, feature_map=None) -> StepSource:
         table = np.load(path / files["next_table"], allow_pickle=False)
         kt = (np.load(path / files["next_table_values"], allow_pickle=False)
               if "next_table_values" in files else None)
-        nxt = TableNext(field("next_index"), table, kt)
+        nxt = TableNext(field("next_index"), table, kt, {
+            n: file_origin(path / files[n]) for n in ("next_table", "next_table_values")
+            if n in files})
     else:
         raise ValueError(f"{path}: unknown next-state form {mf['next']!r}")
     extras = {}
@@ -107,7 +110,9 @@ def open_directory(path, feature_map=None) -> StepSource:
     return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams,
                       sums=sums, reward_range=manifest_range(mf, "reward_range"),
                       reward_noise=_manifest_noise(path, mf),
-                      row_sums=manifest_range(mf, "phi_row_sums"))
+                      row_sums=manifest_range(mf, "phi_row_sums"),
+                      stored_files={n: path / files[n] for n in ("gram", "phi_sums")
+                                    if n in files})
 
 
 def _manifest_noise(path: Path, mf: dict) -> float:

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._finite import Origin, array_origin, dask_origin, file_origin, map_origin
+
 # Trajectories per chunk when streaming a step: about 1 MB (taken actions) and 2 MB (next
 # states, A = 2) of float64 per chunk for d = 30, about one core's L2. Measured at K = 1e6
 # from the page cache (TV and KL fits from disk, min of 3-4 interleaved rounds, shared
@@ -47,6 +49,10 @@ class Field:
     shape: tuple
     dtype: np.dtype
 
+    def origin(self, name: str) -> Origin:
+        """Where the numbers of the field ``name`` come from (named by a fit's errors)."""
+        return array_origin(name)
+
     def read(self, h: int, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Rows ``[h, start:stop]`` as an ndarray (may be a read-only view)."""
         raise NotImplementedError
@@ -68,13 +74,18 @@ class Field:
 
 
 class ArrayField(Field):
-    """A field held in a NumPy array (kept as a read-only view; never copied)."""
+    """A field held in a NumPy array (kept as a read-only view; never copied); ``origin``
+    names where its numbers came from when not the caller (rows taken from a file)."""
 
-    def __init__(self, array: np.ndarray):
+    def __init__(self, array: np.ndarray, origin: Origin | None = None):
         view = array.view() if isinstance(array, np.ndarray) else np.asarray(array)
         view.flags.writeable = False
         self.array = view
         self.shape, self.dtype = view.shape, view.dtype
+        self._origin = origin
+
+    def origin(self, name):
+        return array_origin(name) if self._origin is None else self._origin
 
     def read(self, h, start=0, stop=None):
         return self.array[h, start:stop]
@@ -108,6 +119,9 @@ class FileField(Field):
         if os.path.getsize(self.path) < size:
             raise ValueError(f"{self.path} is truncated: expected {size} bytes")
         self._fd: int | None = None
+
+    def origin(self, name):
+        return file_origin(self.path)
 
     def _file(self) -> int:
         if self._fd is None:
@@ -162,6 +176,9 @@ class DaskField(Field):
         self.array = array
         self.shape, self.dtype = tuple(array.shape), np.dtype(array.dtype)
 
+    def origin(self, name):
+        return dask_origin(name)
+
     def read(self, h, start=0, stop=None):
         return np.asarray(self.array[h, start:stop].compute())
 
@@ -191,6 +208,9 @@ class MappedField(Field):
         self.observations, self.actions, self.feature_map = observations, actions, feature_map
         H, K = observations.shape[:2]
         self.shape, self.dtype = (H, K, int(n_features)), np.dtype(np.float64)
+
+    def origin(self, name):
+        return map_origin("taken-action features")
 
     def read(self, h, start=0, stop=None):
         obs = self.observations.read(h, start, stop)

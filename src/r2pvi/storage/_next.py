@@ -6,6 +6,15 @@ from __future__ import annotations
 import numpy as np
 
 from ._fields import ArrayField, DaskField, Field, FileField, _as_float64
+from ._finite import (
+    NonFiniteRows,
+    Origin,
+    array_origin,
+    first_nonfinite,
+    map_origin,
+    nonfinite_error,
+    subset_origin,
+)
 from ._reads import _prefetched
 
 
@@ -39,7 +48,21 @@ class NextStates:
         nonneg = self.nonnegative
         if nonneg is None:
             nonneg = bool((feats >= 0).all())
-        return qmax(feats, self.known(h, s, e), nonneg)
+        try:
+            return qmax(feats, self.known(h, s, e), nonneg)
+        except NonFiniteRows as exc:
+            raise self.nonfinite(h, s, exc) from None
+
+    # ------------------------------------------------------------------ errors
+    def origin(self, known: bool = False) -> Origin:
+        """Where the next-state features (or, ``known``, the known values) come from."""
+        return array_origin("next_values" if known else "next_phi")
+
+    def nonfinite(self, h, s, exc: NonFiniteRows) -> ValueError:
+        """The error for ``exc`` (raised on the chunk of samples from ``s`` of step ``h``)."""
+        i, a = exc.index[:2]
+        j = exc.index[2] if len(exc.index) > 2 else None
+        return nonfinite_error(self.origin(exc.known), h, s + i, exc.value, action=a, feature=j)
 
     def take(self, idx) -> NextStates:
         raise NotImplementedError
@@ -53,6 +76,10 @@ class StoredNext(NextStates):
         self.n_actions = next_phi.shape[2]
         self.nonnegative = nonnegative
         self.has_known_values = next_values is not None
+
+    def origin(self, known=False):
+        return (self.next_values.origin("next_values") if known
+                else self.next_phi.origin("next_phi"))
 
     def features(self, h, start=0, stop=None):
         return self.next_phi.read(h, start, stop)
@@ -97,8 +124,15 @@ class StoredNext(NextStates):
             u, upper = lin
             A, d = field.shape[2], field.shape[3]
             q = np.empty(shape[0] * A)
+            check = getattr(qmax, "check", False)
             for s, e, rows in float64_rows():
                 qa = np.matmul(rows.reshape(-1, d), u, out=q[: (e - s) * A]).reshape(e - s, A)
+                # a non-finite feature makes its product non-finite (before the clip, which
+                # would hide an infinity): one sum of the chunk's products
+                if check and not np.isfinite(np.add.reduce(q[: (e - s) * A])):
+                    hit = first_nonfinite(rows)
+                    if hit is not None:
+                        raise self.nonfinite(h, s, NonFiniteRows(*hit))
                 if A == 1:
                     out[s:e] = qa[:, 0]
                 elif A == 2:
@@ -112,8 +146,11 @@ class StoredNext(NextStates):
         return out
 
     def take(self, idx):
-        nv = None if self.next_values is None else ArrayField(self.next_values.take(idx))
-        return StoredNext(ArrayField(self.next_phi.take(idx)), nv, self.nonnegative)
+        nv = None if self.next_values is None else ArrayField(
+            self.next_values.take(idx), subset_origin(self.next_values.origin("next_values")))
+        return StoredNext(ArrayField(self.next_phi.take(idx),
+                                     subset_origin(self.next_phi.origin("next_phi"))),
+                          nv, self.nonnegative)
 
 
 class TableNext(NextStates):
@@ -124,8 +161,11 @@ class TableNext(NextStates):
     is computed once per state and gathered by index (when ``S <= K``).
     """
 
-    def __init__(self, index: Field, table: np.ndarray, known_table: np.ndarray | None = None):
+    def __init__(self, index: Field, table: np.ndarray, known_table: np.ndarray | None = None,
+                 origins: dict | None = None):
         self.index, self.table, self.known_table = index, table, known_table
+        # where "next_table" and "next_table_values" came from (files: named by errors)
+        self.origins = dict(origins or {})
         self.n_actions = table.shape[-2]
         used = table if table.ndim == 3 else table[: max(index.shape[0] - 1, 1)]
         self.nonnegative = bool((used >= 0).all())
@@ -142,18 +182,40 @@ class TableNext(NextStates):
             return None
         return self.known_table[self.index.read(h, start, stop)]
 
+    def origin(self, known=False):
+        name = "next_table_values" if known else "next_table"
+        return self.origins.get(name) or array_origin(name)
+
+    def nonfinite(self, h, s, exc):
+        """Entry ``exc.index`` of the table (``s`` is None) or of the samples from ``s``."""
+        if s is not None:  # a sample's row: name the table's entry
+            state = int(np.asarray(self.index.read(h, s + exc.index[0], s + exc.index[0] + 1))[0])
+            exc = NonFiniteRows((state,) + exc.index[1:], exc.value, exc.known)
+        i, a = exc.index[:2]
+        idx = list(exc.index) if self.table.ndim == 3 or exc.known else [h] + list(exc.index)
+        origin = self.origin(exc.known)
+        at = f" at index {idx}" if origin.file_index else ""
+        what = "known value" if exc.known else f"feature {exc.index[2]}"
+        return ValueError(
+            f"{origin.label} holds {exc.value!r}{at} (next state {i}, action {a}, {what}; "
+            f"used by step {h}): a fit uses only finite numbers. Fix: {origin.fix}")
+
     def values(self, h, qmax, n, chunk, out=None):
         table = _as_float64(self._table(h))
         if table.shape[0] > n:  # more states than samples: evaluate the sampled ones only
             return super().values(h, qmax, n, chunk, out)
-        v_table = qmax(table, self.known_table, self.nonnegative)
+        try:
+            v_table = qmax(table, self.known_table, self.nonnegative)
+        except NonFiniteRows as exc:
+            raise self.nonfinite(h, None, exc) from None
         out = np.empty(n) if out is None else out
         for s, e, idx in self.index.chunks(h, chunk):
             np.take(v_table, idx, out=out[s:e])
         return out
 
     def take(self, idx):
-        return TableNext(ArrayField(self.index.take(idx)), self.table, self.known_table)
+        return TableNext(ArrayField(self.index.take(idx)), self.table, self.known_table,
+                         self.origins)
 
 
 class MapNext(NextStates):
@@ -170,6 +232,14 @@ class MapNext(NextStates):
         self.known_values = known_values
         self.has_known_values = known_values is not None
         self.nonnegative = None
+
+    def origin(self, known=False):
+        if not known:
+            return map_origin("features of the next observations")
+        if isinstance(self.known_values, Field):
+            return self.known_values.origin("next_values")
+        return Origin("the next_values function", "make it return finite values, or NaN "
+                      "where the value must be learned")
 
     def features(self, h, start=0, stop=None):
         obs = self.observations.read(h, start, stop)
@@ -210,10 +280,16 @@ def _dask_values(nxt: StoredNext, h, qmax):
     feats = nxt.next_phi.array[h]
     nonneg = nxt.nonnegative
 
-    def block(f, k=None):
+    def block(f, k=None, block_info=None):
         f = np.asarray(f, dtype=np.float64)
         nn = bool((f >= 0).all()) if nonneg is None else nonneg
-        return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64), nn)
+        try:
+            with np.errstate(invalid="ignore", over="ignore"):  # not inherited from the fit
+                return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64),
+                            nn)
+        except NonFiniteRows as exc:  # the block's first trajectory, from Dask
+            start = 0 if block_info is None else block_info[0]["array-location"][0][0]
+            raise nxt.nonfinite(h, int(start), exc) from None
 
     if nxt.next_values is None:
         v = da.map_blocks(block, feats, drop_axis=[1, 2], dtype=np.float64)

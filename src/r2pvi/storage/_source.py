@@ -14,10 +14,29 @@ from ._fields import (
     _as_float64,
     widen_range,
 )
+from ._finite import (
+    FIELDS,
+    check_step_rewards,
+    file_origin,
+    first_nonfinite,
+    subset_origin,
+)
 from ._next import NextStates
 from ._reads import _prefetched
 
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
+
+
+def _quiet():
+    """Dask's worker threads do not inherit the fit's ``np.errstate``: unchecked data may hold
+    infinities, whose products (``inf * 0``) must not warn before the fit's checks name them.
+    A new context each time (one ``errstate`` must not be entered by two threads at once)."""
+    return np.errstate(invalid="ignore", over="ignore")
+
+
+def _quiet_product(b, z):
+    with _quiet():
+        return np.asarray(b, dtype=np.float64) @ z
 
 
 def _dask_products(field: DaskField, h, cols, weights, with_gram):
@@ -48,10 +67,11 @@ def _dask_products(field: DaskField, h, cols, weights, with_gram):
     def block(xb, yb):
         xb = np.asarray(xb, dtype=np.float64)
         out = np.empty((d, width))
-        if with_gram:
-            xw = xb if weights is None else xb * yb[:, m:]
-            out[:, :d] = xw.T @ xb
-        out[:, g:] = xb.T @ yb[:, :m]
+        with _quiet():  # an infinity in the data is named by the client's check of the sums
+            if with_gram:
+                xw = xb if weights is None else xb * yb[:, m:]
+                out[:, :d] = xw.T @ xb
+            out[:, g:] = xb.T @ yb[:, :m]
         return out.reshape(1, d * width)
 
     nb = len(x.chunks[0])
@@ -76,13 +96,30 @@ class StepSource:
     that need explicit rows), :meth:`remote_products` (Dask: sums formed on the workers),
     :meth:`phi_times`, :meth:`rewards_step` and :meth:`next_state_values`; :meth:`gram` and
     :meth:`phi_sums` give cached or stored sums.
+
+    ``checked`` names the fields (``"phi"``, ``"rewards"``, ``"next"``) whose every number
+    was checked when the source was built (finite; the rewards' range taken); a fit checks
+    the others as it reads them (``storage._finite``). Stored ``grams`` and ``sums`` are
+    checked here (``H d^2`` numbers); ``stored_files`` maps ``"gram"`` and ``"phi_sums"`` to
+    the files they were read from, for the errors.
     """
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
                  nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
                  sums=None, unit_rows: bool = False, reward_range=None,
-                 reward_noise: float = 0.0, row_sums=None):
+                 reward_noise: float = 0.0, row_sums=None, checked=(), stored_files=None):
         self.phi, self.rewards, self.next = phi, rewards, nxt
+        self.checked = frozenset(checked)
+        if not self.checked <= FIELDS:
+            raise ValueError(f"checked must name fields among {sorted(FIELDS)}, got "
+                             f"{sorted(self.checked)}")
+        stored_files = dict(stored_files or {})
+        for name, what, value in (("gram", "Gram matrix Phi_h^T Phi_h", grams),
+                                  ("phi_sums", "column sums Phi_h^T 1", sums)):
+            if value is not None:
+                _check_stored(value, name, what, stored_files.get(name))
+        # The range a directory's manifest records for its rewards file (named by errors).
+        self._recorded_range = reward_range if isinstance(rewards, FileField) else None
         # The rewards' (min, max) when known (from validation or the manifest), else found
         # by reward_bounds() from the rewards alone (never the features) and kept.
         self.reward_range = None if reward_range is None else (
@@ -197,7 +234,7 @@ class StepSource:
         field = self.phi
         if isinstance(field, DaskField):
             x = field.step_rows(h)
-            out = x.map_blocks(lambda b: np.asarray(b, dtype=np.float64) @ z,
+            out = x.map_blocks(lambda b: _quiet_product(b, z),
                                chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
                                drop_axis=None if z.ndim == 2 else 1)
             return np.asarray(out.compute(), dtype=np.float64)
@@ -227,6 +264,36 @@ class StepSource:
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
 
+    def check_rewards(self, h: int, rewards: np.ndarray, r_max: float) -> None:
+        """Refuse step ``h``'s ``rewards`` (as read by :meth:`rewards_step`) when one is not
+        finite or leaves ``[0, r_max]`` (beyond rounding and the declared noise); nothing
+        when the rewards were checked at construction."""
+        if "rewards" not in self.checked:
+            check_step_rewards(rewards, h, r_max, self.reward_noise,
+                               self.rewards.origin("rewards"), self._recorded_range)
+
+    def phi_error(self, h: int, rows: np.ndarray | None = None) -> ValueError | None:
+        """The error naming the first non-finite taken-action feature of step ``h`` (read
+        again by chunk: only after a fit's sums were not finite), or None when there is none
+        (the sums overflowed). ``rows`` searches rows already in memory instead: step ``h``'s
+        ``(K, d)``, or the pooled steps' ``(P K, d)`` (step-major) with ``h = None``."""
+        from ._finite import nonfinite_error
+
+        origin, K = self.phi.origin("phi"), self.n_trajectories
+        if rows is not None:
+            hit = first_nonfinite(rows)
+            if hit is None:
+                return None
+            (i, j), value = hit
+            step, k = (i // K, i % K) if h is None else (h, i)
+            return nonfinite_error(origin, step, k, value, feature=j)
+        for s, _, chunk in self.phi_chunks(h):
+            hit = first_nonfinite(chunk)
+            if hit is not None:
+                (i, j), value = hit
+                return nonfinite_error(origin, h, s + i, value, feature=j)
+        return None
+
     def next_state_values(self, h: int, qmax, out: np.ndarray | None = None) -> np.ndarray:
         """``V_{h+1}`` at the K sampled next states; ``qmax(feats (n, A, d), known, nonneg)``;
         written into ``out (K,)`` when given (returned)."""
@@ -241,8 +308,25 @@ class StepSource:
         phi = MappedField(ArrayField(phi.observations.take(idx)),
                           ArrayField(phi.actions.take(idx)), phi.feature_map,
                           phi.shape[2]) if isinstance(phi, MappedField) else ArrayField(
-                              phi.take(idx))
-        return StepSource(phi, ArrayField(self.rewards.take(idx)),
-                          self.next.take(idx), extras, self.nonnegative_phi, self.chunk,
-                          unit_rows=self.unit_rows, reward_noise=self.reward_noise,
-                          row_sums=self.phi_row_sums)  # a subset's sums lie in the range
+                              phi.take(idx), subset_origin(phi.origin("phi")))
+        rewards = ArrayField(self.rewards.take(idx), subset_origin(self.rewards.origin("rewards")))
+        return StepSource(phi, rewards, self.next.take(idx), extras, self.nonnegative_phi,
+                          self.chunk, unit_rows=self.unit_rows, reward_noise=self.reward_noise,
+                          row_sums=self.phi_row_sums,  # a subset's sums lie in the range
+                          checked=self.checked)  # the same numbers, checked or not
+
+
+def _check_stored(value: np.ndarray, name: str, what: str, path) -> None:
+    """Refuse stored per-step sums (``(H, d, d)`` Gram matrices, ``(H, d)`` column sums) that
+    are not finite: a fit would use them in place of the features' own."""
+    hit = first_nonfinite(value[..., None])
+    if hit is None:
+        return
+    idx, v = hit
+    idx = list(idx[:-1])
+    label = f"the stored {name}" if path is None else str(path)
+    fix = (file_origin(path).fix if path is not None else
+           "pass finite sums, or none (a fit then forms them from the features)")
+    raise ValueError(
+        f"{label} holds {v!r} at index {idx} (step {idx[0]}, the {what}): a fit uses only "
+        f"finite numbers. Fix: {fix}")
