@@ -745,8 +745,12 @@ class OfflineDataset:
         """Save in the on-disk format: a directory of step-major ``.npy`` files and a JSON
         manifest (format version 2), written in a temporary directory and renamed into
         place. A path ending in ``.npz`` writes the legacy single-file format (version 1),
-        atomically too. An existing path (directory or file) is refused unless
-        ``overwrite=True``. Returns the path written. Open it lazily with :meth:`open` (any size).
+        atomically too. An existing path is refused unless ``overwrite=True``, and then too
+        unless it holds an r2pvi dataset (a dataset directory holding only its own files, a
+        dataset ``.npz`` file) or nothing (an empty directory; an empty file for an ``.npz``
+        path): a ``FileExistsError`` names what is there, so a save never destroys a file or
+        directory r2pvi did not write. A failed save keeps the previous dataset. Returns the
+        path written. Open it lazily with :meth:`open` (any size).
 
         ``next_form="behaviour"`` stores the next-state features without each sample's row
         that equals the next step's taken-action features ``phi[k, h+1]`` (see

@@ -260,9 +260,12 @@ class SparseOfflineDataset(OfflineDataset):
             _d=self._d, _A=A,
         )
 
-    def save(self, path):
-        raise TypeError("saving a SparseOfflineDataset is not supported; keep the feature map "
-                        "and the observations, and rebuild it")
+    def save(self, path, *, dtype=None, overwrite: bool = False, next_form: str = "full"):
+        """Not offered (the on-disk format stores dense rows): a ``TypeError``, whatever the
+        arguments; nothing is written and nothing at ``path`` is touched."""
+        raise TypeError(f"cannot save a SparseOfflineDataset to {path}: the on-disk format "
+                        "stores dense rows; keep the feature map and the observations, and "
+                        "rebuild it with SparseOfflineDataset.from_transitions")
 
     def __repr__(self) -> str:
         nnz = sum(m.nnz for m in self._sphi)

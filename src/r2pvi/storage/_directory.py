@@ -22,6 +22,8 @@ from ._format import (
     _manifest,
     _temp_dir,
     _write_npy_header,
+    check_target,
+    clean_stale,
     manifest_range,
 )
 from ._next import MapNext, NextStates, StoredNext, TableNext
@@ -34,6 +36,7 @@ def open_directory(path, feature_map=None) -> StepSource:
     A dataset stored as observations (``"phi": "map"`` or ``"next": "map"`` in the
     manifest) needs the ``feature_map`` it was built with."""
     path = Path(os.fspath(path))
+    clean_stale(path)
     if not path.exists():
         hint = ("; a .npz dataset file is read into memory with OfflineDataset.load(path)"
                 if path.suffix == ".npz" else "")
@@ -203,8 +206,7 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
     the next step's taken-action features (:class:`BehaviourNext`)."""
     path = Path(os.fspath(path))
     next_form = _next_form(next_form)
-    if path.exists() and not overwrite:  # before any work (checked again at the rename)
-        raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
+    check_target(path, overwrite)  # before any work (checked again at the rename)
     store = np.dtype(dtype) if dtype is not None else np.dtype(
         np.float32 if source.phi.dtype == np.float32 else np.float64)
     if store not in (np.float32, np.float64):
