@@ -18,36 +18,10 @@ from .._io import DATASET_DIRECTORY, DATASET_KIND, EMPTY_DIRECTORY, check_replac
 from ._fields import CHUNK
 
 FORMAT_VERSION = 2
-FIRST_DIRECTORY_VERSION = 2  # format 1 is the legacy single-file .npz
 KIND = DATASET_KIND
 MANIFEST = "manifest.json"
 GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)
 SUMS_FILE = "phi_sums.npy"  # (H, d) float64 Phi_h^T 1, the column sums (optional)
-
-
-def _manifest(path: Path) -> dict:
-    mf = path / MANIFEST
-    if not mf.is_file():
-        raise ValueError(f"{path} is not an r2pvi dataset directory (no {MANIFEST})")
-    with open(mf) as fh:
-        header = json.load(fh)
-    if header.get("kind") != KIND:
-        raise ValueError(f"{path} holds a {header.get('kind')!r}, not a {KIND!r}")
-    version = header.get("format_version")
-    if (isinstance(version, bool) or not isinstance(version, int)
-            or version < FIRST_DIRECTORY_VERSION):
-        # dataset directories exist from format version 2 on: anything else is not one
-        raise ValueError(
-            f"{path}: the manifest's format_version must be an integer >= "
-            f"{FIRST_DIRECTORY_VERSION} (the dataset directory format), got {version!r}; the "
-            "manifest is damaged or was not written by r2pvi"
-        )
-    if version > FORMAT_VERSION:
-        raise ValueError(
-            f"{path} has format version {version}; this r2pvi reads version "
-            f"{FORMAT_VERSION}: upgrade r2pvi"
-        )
-    return header
 
 
 # A save writes ``.NAME.tmp-PID-HOST-RAND`` next to ``NAME`` and renames it into place; an
