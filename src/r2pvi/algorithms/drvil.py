@@ -136,7 +136,8 @@ class DRVIL(LinearEstimator):
         objective is decided by the estimate's error. Without it, a factor with (almost) no
         mass on the lowest values can get its plain estimate instead of a robust one (the
         ridge estimate of ``E[e^{-V/b}]`` crosses 0 as ``b -> 0``). None searches
-        ``b -> 0`` (Ma et al.'s estimator without the assumption).
+        ``b -> 0`` (Ma et al.'s estimator without the assumption). A float must lie in
+        ``(0, 1e300]`` (``B_MIN_MAX``).
     form : {"normalized", "ma"}, default "normalized"
         How the ridge regression estimates ``E_i[e^{-V/b}]``: ``s_i`` times the estimate
         under the row-normalized weights (no ridge shrinkage bias), or Ma et al.'s regression
