@@ -1,6 +1,6 @@
 """Scripted damage to every loader and public constructor, each outcome classified.
 
-Run from a checkout (a few tens of seconds, one core)::
+Run from a checkout (about 10 s, one core)::
 
     PYTHONPATH=src python benchmarks/fuzz_public_surface.py [--show CLASS] [--group GROUP]
 

@@ -36,7 +36,9 @@ REPLACEABLE = frozenset({DATASET_DIRECTORY, EMPTY_DIRECTORY, "OfflineDataset"})
 
 def check_target(path: Path, overwrite: bool) -> None:
     """A ``FileExistsError`` unless a dataset may be saved at ``path`` (see
-    :data:`REPLACEABLE`); checked before any work and again at the rename."""
+    :data:`REPLACEABLE`); checked before any work and again at the rename, each time after
+    :func:`clean_stale` (which may put back the dataset of an interrupted overwrite)."""
+    clean_stale(path)
     check_replaceable(path, REPLACEABLE, "a dataset", overwrite=overwrite)
 
 
@@ -45,7 +47,6 @@ def _side_name(path: Path, what: str) -> Path:
 
 
 def _temp_dir(path: Path) -> Path:
-    clean_stale(path)
     tmp = _side_name(path, "tmp")
     tmp.mkdir(parents=True)
     return tmp
