@@ -1,5 +1,6 @@
-"""Loading a saved estimator (``r2pvi.load``): every field of the file checked, ranges
-included; a bad file is a ``ValueError`` naming the file and the field."""
+"""The saved model file: its format version, the registry of estimator classes, and loading
+(``r2pvi.load``) with every field of the file checked, ranges included; a bad file is a
+``ValueError`` naming the file and the field."""
 
 from __future__ import annotations
 
@@ -11,7 +12,21 @@ from .._validation import check_choice, check_scalar, plain
 from ..duals.fdivergence import get_divergence
 from ..duals.operators import _SparseProduct, _UsedFeaturesFactor
 from ..engine import FittedModel
-from .base import _ELLIPTICAL_KINDS, ESTIMATOR_REGISTRY, MODEL_FORMAT_VERSION
+
+# Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
+# ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
+# the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
+# Version 3: header ``elliptical_kinds`` (one of "dense", "sparse", "used" per distinct factor)
+# and, by kind: dense ``elliptical_r``; sparse-row dual factors ``R = C^{-1} Psi`` as
+# ``elliptical_cinv`` (Gs, n, n) and Psi's CSR pieces (``elliptical_psi_data``,
+# ``elliptical_psi_indices``, ``elliptical_psi_indptr`` (Gs, n + 1)); sparse-row primal factors
+# ``L_U^{-1}`` on the used features U, ragged (``elliptical_linv_data``, ``elliptical_cols``,
+# ``elliptical_sizes`` (Gu,)). Version-2 files (dense only, no kinds) still load.
+MODEL_FORMAT_VERSION = 3
+# Every LinearEstimator subclass registers itself here by name (``__init_subclass__``): a
+# model file names its class, and loading dispatches on it.
+ESTIMATOR_REGISTRY: dict[str, type] = {}
+ELLIPTICAL_KINDS = ("dense", "sparse", "used")
 
 
 class _Shape:
@@ -111,14 +126,14 @@ def _load_elliptical(path, arrays, header, H: int, d: int, needed: bool, gamma: 
     kinds = header.get("elliptical_kinds")
     if kinds is None and header["format_version"] >= 3:
         raise file_error(path, "elliptical_kinds", "is missing (a list of the factors' kinds, "
-                         f"each one of {list(_ELLIPTICAL_KINDS)})")
+                         f"each one of {list(ELLIPTICAL_KINDS)})")
     if kinds is None:  # version 2: dense factors only
         rs = file_array(path, arrays, "elliptical_r", ndim=3)
         kinds = ["dense"] * rs.shape[0]
     if (not isinstance(kinds, list) or not kinds
-            or any(k not in _ELLIPTICAL_KINDS for k in kinds)):
+            or any(k not in ELLIPTICAL_KINDS for k in kinds)):
         raise file_error(path, "elliptical_kinds", f"must be a non-empty list of "
-                         f"{_ELLIPTICAL_KINDS}, got {kinds!r}")
+                         f"{ELLIPTICAL_KINDS}, got {kinds!r}")
     G = len(kinds)
     cs = file_array(path, arrays, "elliptical_c", shape=(G, 2))
     if (not isinstance(index, list) or len(index) != H

@@ -19,20 +19,10 @@ from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
 from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
+from ._model_file import ELLIPTICAL_KINDS as _ELLIPTICAL_KINDS
+from ._model_file import ESTIMATOR_REGISTRY, MODEL_FORMAT_VERSION, load_model
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY", "check_reward_range"]
-
-# Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
-# ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
-# the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
-# Version 3: header ``elliptical_kinds`` (one of "dense", "sparse", "used" per distinct factor)
-# and, by kind: dense ``elliptical_r``; sparse-row dual factors ``R = C^{-1} Psi`` as
-# ``elliptical_cinv`` (Gs, n, n) and Psi's CSR pieces (``elliptical_psi_data``,
-# ``elliptical_psi_indices``, ``elliptical_psi_indptr`` (Gs, n + 1)); sparse-row primal factors
-# ``L_U^{-1}`` on the used features U, ragged (``elliptical_linv_data``, ``elliptical_cols``,
-# ``elliptical_sizes`` (Gu,)). Version-2 files (dense only, no kinds) still load.
-MODEL_FORMAT_VERSION = 3
-ESTIMATOR_REGISTRY: dict[str, type] = {}
 
 _FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
 
@@ -427,12 +417,7 @@ def load_estimator(path):
     values a fit can produce (see :mod:`r2pvi.algorithms._model_file`). A bad file raises a
     ``ValueError`` naming the file and the field.
     """
-    from ._model_file import load_model
-
     return load_model(path)
-
-
-_ELLIPTICAL_KINDS = ("dense", "sparse", "used")
 
 
 def _pack_elliptical(factors: list) -> tuple[list[int], dict, list[str]]:
