@@ -17,12 +17,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset
 from r2pvi.sparse import SparseOfflineDataset
 from r2pvi.storage import _format
 
 K, H, A, D = 12, 3, 2, 4
-SRC = str(Path(__file__).resolve().parents[1] / "src")
+SRC = str(Path(r2pvi.__file__).resolve().parents[1])  # children import the same r2pvi
 
 
 def _data(seed=0):
@@ -220,19 +221,20 @@ _APPEND_THEN_DIE = """
 def test_a_temporary_left_by_a_killed_append_is_removed_by_the_next_write(tmp_path):
     target = tmp_path / "ds"
     kw = {"path": str(target), "H": H, "D": D, "A": A, "K": K}
-    proc = _run_child(_APPEND_THEN_DIE.format(**kw, then="os.kill(os.getpid(), signal.SIGKILL)"))
-    assert proc.returncode == -signal.SIGKILL
-    left = _side_entries(tmp_path, "ds", "tmp")
-    assert len(left) == 1 and f"-{proc.pid}-" in left[0]
-    # a live writer's temporary, for the same path, is never touched
+    # a live writer of the same path, whose temporary must never be touched
     live = _run_child(_APPEND_THEN_DIE.format(**kw, then="print('ready', flush=True); input()"),
                       wait=False)
     try:
         assert live.stdout.readline().strip() == "ready"
-        mine = [n for n in _side_entries(tmp_path, "ds", "tmp") if f"-{live.pid}-" in n]
-        assert len(mine) == 1
+        mine = _side_entries(tmp_path, "ds", "tmp")
+        assert len(mine) == 1 and f"-{live.pid}-" in mine[0]
+        proc = _run_child(_APPEND_THEN_DIE.format(
+            **kw, then="os.kill(os.getpid(), signal.SIGKILL)"))
+        assert proc.returncode == -signal.SIGKILL
+        left = [n for n in _side_entries(tmp_path, "ds", "tmp") if f"-{proc.pid}-" in n]
+        assert len(left) == 1  # kill -9 mid-append leaves its temporary directory
         data = _data()
-        with _writer(target) as w:
+        with _writer(target) as w:  # the next write of the path
             w.append(data.phi, data.rewards, data.next_phi)
         assert _side_entries(tmp_path, "ds", "tmp") == mine  # the killed one is gone
         assert OfflineDataset.open(target).n_trajectories == K
