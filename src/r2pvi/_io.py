@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["save_npz", "load_npz", "FileFieldError", "file_array", "file_error"]
+__all__ = ["save_npz", "load_npz", "FileFieldError", "file_array", "file_error",
+           "check_replaceable", "what_is_at"]
 
 _META_KEY = "__r2pvi_meta__"
 _ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
@@ -57,6 +58,86 @@ def _held_kind(path: Path):
     return kind if isinstance(kind, str) else None
 
 
+# What may stand at a path a save replaces (besides r2pvi ``.npz`` kinds, see _KINDS).
+DATASET_KIND = "r2pvi.OfflineDataset"  # the "kind" of a dataset directory's manifest.json
+DATASET_DIRECTORY = "<an r2pvi dataset directory>"
+EMPTY_DIRECTORY = "<an empty directory>"
+EMPTY_FILE = "<an empty file>"
+_LISTED = 5  # foreign entries named in an error
+
+
+def _dataset_directory_files(path: Path) -> set[str] | None:
+    """The entries an r2pvi dataset directory ``path`` is made of (``manifest.json``, the
+    files its manifest lists, ``extra_<name>.npy``), or None when ``path`` has no readable
+    dataset manifest."""
+    try:
+        with open(path / "manifest.json", "rb") as fh:
+            header = json.loads(fh.read(1 << 20))
+    except (OSError, ValueError):  # missing, unreadable, not JSON (UnicodeDecodeError too)
+        return None
+    if not isinstance(header, dict) or header.get("kind") != DATASET_KIND:
+        return None
+    files, extras = header.get("files"), header.get("extras", [])
+    if (not isinstance(files, dict) or not isinstance(extras, list)
+            or not all(isinstance(f, str) for f in files.values())
+            or not all(isinstance(e, str) for e in extras)):
+        return None
+    return {"manifest.json", *files.values(), *(f"extra_{e}.npy" for e in extras)}
+
+
+def what_is_at(path) -> tuple[str, str]:
+    """``(description, kind)`` of what exists at ``path``: ``kind`` is an r2pvi ``.npz``
+    file's kind, :data:`DATASET_DIRECTORY` (a directory holding exactly the files of an r2pvi
+    dataset), :data:`EMPTY_DIRECTORY`, :data:`EMPTY_FILE`, or ``""`` for anything else
+    (a file or directory r2pvi did not write, a link, a device)."""
+    path = Path(os.fspath(path))
+    if path.is_symlink():
+        return f"a symbolic link (to {os.readlink(path)})", ""
+    if path.is_dir():
+        try:
+            entries = sorted(e.name for e in path.iterdir())
+        except OSError as exc:
+            return f"a directory r2pvi cannot list ({exc.strerror})", ""
+        if not entries:
+            return "an empty directory", EMPTY_DIRECTORY
+        own = _dataset_directory_files(path)
+        foreign = entries if own is None else [e for e in entries if e not in own]
+        if not foreign:
+            return "an r2pvi dataset directory", DATASET_DIRECTORY
+        names = ", ".join(foreign[:_LISTED]) + (", ..." if len(foreign) > _LISTED else "")
+        count = f"{len(foreign)} {'entry' if len(foreign) == 1 else 'entries'}"
+        if own is None:
+            return (f"a directory that is not an r2pvi dataset (no valid manifest.json; "
+                    f"{count}: {names})"), ""
+        return (f"an r2pvi dataset directory that also holds {count} r2pvi did not write "
+                f"({names})"), ""
+    if path.is_file():
+        if path.stat().st_size == 0:
+            return "an empty file", EMPTY_FILE
+        held = _held_kind(path)
+        if held is None:
+            return "a file r2pvi did not write", ""
+        return f"{_what(held)} (kind {held!r})", held
+    return "something that is neither a file nor a directory", ""
+
+
+def check_replaceable(path, replaceable, saving: str, *, overwrite: bool) -> None:
+    """Refuse to save ``saving`` (e.g. "a dataset") at an existing ``path``: always with
+    ``overwrite=False``, and with ``overwrite=True`` unless what is there (see
+    :func:`what_is_at`) has one of the kinds in ``replaceable``. A ``FileExistsError``
+    naming the path and what it holds; nothing is done when ``path`` does not exist."""
+    path = Path(os.fspath(path))
+    if not os.path.lexists(path):
+        return
+    if not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
+    description, kind = what_is_at(path)
+    if kind not in replaceable:
+        raise FileExistsError(
+            f"{path} exists and holds {description}: saving {saving} there would destroy "
+            "it; choose another path or remove it first")
+
+
 def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta: dict,
              *, overwrite: bool = True) -> Path:
     """Write ``arrays`` and a JSON header ``{"kind", "format_version", **meta}`` to ``path``.
@@ -65,7 +146,7 @@ def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta:
     ``path`` gets the suffix ``.npz`` when it has none. A directory is never written over.
     An existing file is refused with ``overwrite=False``, and with ``overwrite=True`` too
     unless it is an r2pvi file of the same ``kind`` or empty (a model replaces a model; a
-    save never destroys a dataset or a file r2pvi did not write).
+    save never destroys a dataset or a file r2pvi did not write): see :func:`check_replaceable`.
     """
     given = Path(os.fspath(path))
     path = given if given.suffix == ".npz" else given.with_name(given.name + ".npz")
@@ -78,16 +159,7 @@ def save_npz(path, kind: str, version: int, arrays: dict[str, np.ndarray], meta:
         raise IsADirectoryError(
             f"cannot save to {where}: it is a directory{what}; {_what(kind)} is saved to one "
             f".npz file: pass a file path such as {str(suggestion)!r}")
-    if path.exists():
-        if not overwrite:
-            raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
-        held = _held_kind(path)
-        if held != kind and path.stat().st_size > 0:  # an empty file holds nothing to lose
-            holds = ("a file r2pvi did not write" if held is None
-                     else f"{_what(held)} (kind {held!r})")
-            raise FileExistsError(
-                f"{path} exists and holds {holds}: saving {_what(kind)} there would destroy "
-                "it; choose another path or remove the file first")
+    check_replaceable(path, {kind, EMPTY_FILE}, _what(kind), overwrite=overwrite)
     header = {"kind": kind, "format_version": version, **meta}
     payload = {k: np.asarray(v) for k, v in arrays.items()}
     if _META_KEY in payload:

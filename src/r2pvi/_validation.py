@@ -13,11 +13,25 @@ def plain(value):
     return value.item() if isinstance(value, np.generic) else value
 
 
+def as_array(x, name: str) -> np.ndarray:
+    """``np.asarray(x)``, with a ragged nested list (rows of different lengths) a
+    ``ValueError`` naming the argument instead of NumPy's "inhomogeneous shape"."""
+    try:
+        return np.asarray(x)
+    except ValueError as exc:
+        detected = str(exc).split("The detected shape was ", 1)
+        where = f" (the rows agree up to shape {detected[1].split(' +')[0]})" if len(
+            detected) == 2 else ""
+        raise ValueError(f"{name} must be a rectangular array, got a ragged "
+                         f"{type(x).__name__} whose rows have different lengths{where}; pad "
+                         "the rows or pass an ndarray") from None
+
+
 def as_float_array(x, name: str, ndim: int | None = None, allow_nan: bool = False,
                    copy: bool = True) -> np.ndarray:
     """Return ``x`` as a float64 array (a copy unless ``copy=False``, for callers that only
     read it), checking dtype, dimension and finiteness."""
-    raw = np.asarray(x) if not isinstance(x, str) else None
+    raw = as_array(x, name) if not isinstance(x, str) else None
     if raw is None or raw.dtype.kind not in "biuf":
         kind = type(x).__name__ if raw is None else f"an array of dtype {raw.dtype}"
         if raw is not None and raw.dtype.kind == "c":
@@ -72,7 +86,7 @@ def check_choice(value, name: str, choices) -> str:
 
 def as_index_array(x, name: str, n: int, ndim: int | None = None) -> np.ndarray:
     """Integer indices in ``[0, n)`` as int64 (floats with integer values are accepted)."""
-    arr = np.asarray(x)
+    arr = as_array(x, name)
     if arr.dtype == bool or arr.dtype.kind not in "iuf":
         raise TypeError(f"{name} must be integer indices, got dtype {arr.dtype}")
     if arr.dtype.kind == "f" and (

@@ -21,7 +21,7 @@ import numpy as np
 
 from . import storage as _st
 from ._io import file_error, load_npz, save_npz
-from ._validation import as_float_array, as_index_array
+from ._validation import as_array, as_float_array, as_index_array
 from .storage import SimplexFeatureWarning
 
 __all__ = ["OfflineDataset", "SimplexFeatureWarning", "check_simplex_features"]
@@ -234,7 +234,7 @@ class OfflineDataset:
                 f"table must have shape (S, A, d) or (H, S, A, d) with H = {H}, d = {d}, "
                 f"got {tab.shape}")
         S, A = tab.shape[-3], tab.shape[-2]
-        idx = np.asarray(next_states)
+        idx = as_array(next_states, "next_states")
         if idx.shape != (K, H):
             raise ValueError(f"next_states must have shape (K, H) = {(K, H)}, got {idx.shape}")
         if not np.issubdtype(idx.dtype, np.integer):
@@ -438,9 +438,9 @@ class OfflineDataset:
         (array([0., 1., 0., 0.]), array([0., 0., 0., 1.]))
         """
         _check_feature_map(feature_map, n_actions)
-        states = np.asarray(states)
-        next_states = np.asarray(next_states)
-        actions_arr = np.asarray(actions)
+        states = as_array(states, "states")
+        next_states = as_array(next_states, "next_states")
+        actions_arr = as_array(actions, "actions")
         if actions_arr.ndim != 2:
             raise ValueError(f"actions must have shape (K, H), got {actions_arr.shape}")
         actions_arr = as_index_array(actions_arr, "actions", int(n_actions), ndim=2)
@@ -752,8 +752,12 @@ class OfflineDataset:
         """Save in the on-disk format: a directory of step-major ``.npy`` files and a JSON
         manifest (format version 2), written in a temporary directory and renamed into
         place. A path ending in ``.npz`` writes the legacy single-file format (version 1),
-        atomically too. An existing path (directory or file) is refused unless
-        ``overwrite=True``. Returns the path written. Open it lazily with :meth:`open` (any size).
+        atomically too. An existing path is refused unless ``overwrite=True``, and then too
+        unless it holds an r2pvi dataset (a dataset directory holding only its own files, a
+        dataset ``.npz`` file) or nothing (an empty directory; an empty file for an ``.npz``
+        path): a ``FileExistsError`` names what is there, so a save never destroys a file or
+        directory r2pvi did not write. A failed save keeps the previous dataset. Returns the
+        path written. Open it lazily with :meth:`open` (any size).
 
         ``next_form="behaviour"`` stores the next-state features without each sample's row
         that equals the next step's taken-action features ``phi[k, h+1]`` (see
@@ -878,11 +882,4 @@ def _check_feature_map(feature_map, n_actions) -> None:
 
 def _check_map_actions(feature_map, n_actions) -> None:
     """``n_actions`` agrees with a feature map that records its own (``cross_actions``)."""
-    own = getattr(feature_map, "n_actions", None)
-    if (isinstance(own, int | np.integer) and not isinstance(own, bool)
-            and isinstance(n_actions, int | np.integer) and int(own) != int(n_actions)):
-        raise ValueError(
-            f"n_actions={int(n_actions)} disagrees with the feature map, built for "
-            f"n_actions={int(own)} ({type(feature_map).__name__}); pass n_actions={int(own)} "
-            f"or build the map with cross_actions(..., n_actions={int(n_actions)})"
-        )
+    _st.check_map_actions(feature_map, n_actions)

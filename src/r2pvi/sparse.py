@@ -67,12 +67,12 @@ def stack_rows(parts: Sequence):
     return np.concatenate(parts)
 
 
-def _csr(x, name: str, shape: tuple[int, int]):
+def _csr(x, name: str, shape: tuple[int, int], what: str = ""):
     if not sp.issparse(x):
         raise TypeError(f"{name} must be a scipy.sparse matrix, got {type(x).__name__}")
     m = sp.csr_matrix(x, dtype=float)
     if m.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {m.shape}")
+        raise ValueError(f"{name} must have shape {what}{shape}, got {m.shape}")
     if not np.all(np.isfinite(m.data)):
         raise ValueError(f"{name} contains NaN or infinite entries")
     return m
@@ -117,6 +117,10 @@ class SparseOfflineDataset(OfflineDataset):
         A = int(n_actions)
         if A < 1:
             raise ValueError(f"n_actions must be >= 1, got {A}")
+        for name, rows in (("phi", phi), ("next_phi", next_phi)):
+            if not isinstance(rows, Sequence) or isinstance(rows, str | bytes):
+                raise TypeError(f"{name} must be a list of H scipy.sparse matrices (one per "
+                                f"step), got {type(rows).__name__}")
         rewards = as_float_array(rewards, "rewards", ndim=2)
         K, H = rewards.shape
         if K == 0 or H == 0:
@@ -130,7 +134,8 @@ class SparseOfflineDataset(OfflineDataset):
             raise TypeError(f"phi[0] must be a scipy.sparse matrix, got {type(phi[0]).__name__}")
         d = phi[0].shape[1]
         sphi = [_csr(p, f"phi[{h}]", (K, d)) for h, p in enumerate(phi)]
-        snext = [StackedSparse(_csr(p, f"next_phi[{h}]", (K * A, d)), (K, A))
+        snext = [StackedSparse(_csr(p, f"next_phi[{h}]", (K * A, d),
+                                    "(K * n_actions, d) = "), (K, A))
                  for h, p in enumerate(next_phi)]
         nv = None
         if next_values is not None:
@@ -260,9 +265,13 @@ class SparseOfflineDataset(OfflineDataset):
             _d=self._d, _A=A,
         )
 
-    def save(self, path):
-        raise TypeError("saving a SparseOfflineDataset is not supported; keep the feature map "
-                        "and the observations, and rebuild it")
+    def save(self, path, *, dtype=None, overwrite: bool = False, next_form: str = "full"):
+        """Not offered (the on-disk format stores dense rows): a ``TypeError``, whatever the
+        arguments; nothing is written and nothing at ``path`` is touched."""
+        raise TypeError(f"cannot save a SparseOfflineDataset to {path}: saving sparse rows is "
+                        "not supported (the on-disk format stores dense rows); keep the feature "
+                        "map and the observations, and rebuild it with "
+                        "SparseOfflineDataset.from_transitions")
 
     def __repr__(self) -> str:
         nnz = sum(m.nnz for m in self._sphi)

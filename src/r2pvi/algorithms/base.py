@@ -12,30 +12,19 @@ import inspect
 import numbers
 
 import numpy as np
-import scipy.sparse as sp
 
 from .._compat import KeywordParams, SklearnCompatMixin, not_fitted_error
-from .._io import file_array, file_error, load_npz, save_npz
+from .._io import save_npz
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
 from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 from ..storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
+from ._model_file import ELLIPTICAL_KINDS as _ELLIPTICAL_KINDS
+from ._model_file import ESTIMATOR_REGISTRY, MODEL_FORMAT_VERSION, load_model
 
 __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY", "check_reward_range"]
-
-# Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
-# ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
-# the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
-# Version 3: header ``elliptical_kinds`` (one of "dense", "sparse", "used" per distinct factor)
-# and, by kind: dense ``elliptical_r``; sparse-row dual factors ``R = C^{-1} Psi`` as
-# ``elliptical_cinv`` (Gs, n, n) and Psi's CSR pieces (``elliptical_psi_data``,
-# ``elliptical_psi_indices``, ``elliptical_psi_indptr`` (Gs, n + 1)); sparse-row primal factors
-# ``L_U^{-1}`` on the used features U, ragged (``elliptical_linv_data``, ``elliptical_cols``,
-# ``elliptical_sizes`` (Gu,)). Version-2 files (dense only, no kinds) still load.
-MODEL_FORMAT_VERSION = 3
-ESTIMATOR_REGISTRY: dict[str, type] = {}
 
 _FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
 
@@ -427,195 +416,15 @@ def _gram_error_with_step(exc, dataset, gamma, sample_weights) -> GramMatrixErro
     return exc
 
 
-class _Shape:
-    """What fit's parameter checks read from a dataset, rebuilt from a saved model."""
-
-    def __init__(self, horizon: int, n_features: int):
-        self.horizon, self.n_features, self.n_trajectories = horizon, n_features, 2
-
-
 def load_estimator(path):
     """Load any estimator saved with ``save`` (dispatches on the class recorded in the file).
 
-    Every field is checked: the parameters go through the same checks as ``fit``, and the
-    fitted arrays must have consistent shapes, finite entries, lower-triangular Cholesky
-    factors with a positive diagonal and positive ``gram_inv_diag_``. A bad file raises a
+    Every field is checked, ranges included: the parameters go through the same checks as
+    ``fit``, and the fitted arrays must have consistent shapes, finite entries and the
+    values a fit can produce (see :mod:`r2pvi.algorithms._model_file`). A bad file raises a
     ``ValueError`` naming the file and the field.
     """
-    from ..duals.fdivergence import get_divergence
-
-    arrays, header = load_npz(path, "estimator", MODEL_FORMAT_VERSION)
-    name = header.get("estimator")
-    if not isinstance(name, str) or name not in ESTIMATOR_REGISTRY:
-        raise file_error(path, "estimator", f"is {name!r}, not one of {sorted(ESTIMATOR_REGISTRY)}")
-    cls = ESTIMATOR_REGISTRY[name]
-    raw = header.get("params")
-    if not isinstance(raw, dict):
-        raise file_error(path, "params", "must be a JSON object")
-    unknown = sorted(set(raw) - set(cls._param_names()))
-    if unknown:
-        raise file_error(path, "params", f"has unknown parameters {unknown} for {name}")
-    params = {}
-    for key, value in raw.items():
-        if isinstance(value, dict) and "__array__" in value:
-            value = file_array(path, arrays, str(value["__array__"]))
-        elif isinstance(value, dict) and "__divergence__" in value:
-            try:
-                value = get_divergence(value["__divergence__"])
-            except (TypeError, ValueError, KeyError) as exc:
-                raise file_error(path, f"params.{key}", f"is not a divergence: {exc}") from None
-        params[key] = value
-    est = cls(**params)
-    weights = file_array(path, arrays, "weights_", ndim=2)
-    H, d = weights.shape
-    if H < 1 or d < 1:
-        raise file_error(path, "weights_", f"must have H, d >= 1, got shape {(H, d)}")
-    reward_weights = file_array(path, arrays, "reward_weights_", shape=(H, d))
-    inv_diag = file_array(path, arrays, "gram_inv_diag_", shape=(H, d))
-    if np.any(inv_diag <= 0):
-        raise file_error(path, "gram_inv_diag_", "must be > 0 (the diagonal of Lambda_h^-1), "
-                         f"got min {plain(inv_diag.min())!r}")
-    try:  # the parameters go through fit's own checks
-        checked = est._validate_common(_Shape(H, d))
-        checked.update(est._validate_extra(_Shape(H, d)))
-    except (TypeError, ValueError) as exc:
-        raise file_error(path, "params", f"fail the estimator's checks: {exc}") from None
-    fit_params = header.get("fit_params")
-    if not isinstance(fit_params, dict) or set(fit_params) != {"beta", "penalty", "r_max"}:
-        raise file_error(path, "fit_params", "must be an object with beta, penalty and r_max")
-    try:
-        fp = {
-            "beta": check_scalar(fit_params["beta"], "beta", low=0.0),
-            "penalty": check_choice(fit_params["penalty"], "penalty", est._penalty_choices),
-            "r_max": check_scalar(fit_params["r_max"], "r_max", low=0.0, low_inclusive=False),
-        }
-    except (TypeError, ValueError) as exc:
-        raise file_error(path, "fit_params", str(exc)) from None
-    for key in ("penalty", "r_max") + (() if isinstance(params.get("beta"), str) else ("beta",)):
-        if fp[key] != checked[key]:
-            raise file_error(path, f"fit_params.{key}", f"is {fp[key]!r} but the parameters "
-                             f"say {checked[key]!r}: the file was altered")
-    n_actions = header.get("n_actions")
-    if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 1:
-        raise file_error(path, "n_actions", f"must be an integer >= 1, got {n_actions!r}")
-    ellip = _load_elliptical(path, arrays, header, H, d, fp["penalty"] == "elliptical")
-    model = FittedModel(weights, reward_weights, inv_diag, ellip)
-    est._set_fitted(model, fp, n_actions)
-    return est
-
-
-def _load_elliptical(path, arrays, header, H: int, d: int, needed: bool):
-    """The elliptical penalty's per-step factors: version 1 stored the (H, d, d) Cholesky
-    factors ``L`` (``R = L^{-1}``), version 2 the distinct factors and an index per step."""
-    if header["format_version"] == 1:
-        chol = file_array(path, arrays, "gram_cholesky_", shape=(H, d, d))
-        diag = np.diagonal(chol, axis1=1, axis2=2)
-        if np.any(np.triu(chol, k=1)) or np.any(diag <= 0):
-            raise file_error(path, "gram_cholesky_", "must be lower-triangular with a positive "
-                             "diagonal (Cholesky factors of the Gram matrices)")
-        if not needed:
-            return None
-        return [(np.linalg.solve(c, np.eye(d)), 0.0, 1.0) for c in chol]
-    if not needed:
-        return None
-    index = header.get("elliptical_index")
-    kinds = header.get("elliptical_kinds")
-    if kinds is None:  # version 2: dense factors only
-        rs = file_array(path, arrays, "elliptical_r", ndim=3)
-        kinds = ["dense"] * rs.shape[0]
-    if (not isinstance(kinds, list) or not kinds
-            or any(k not in _ELLIPTICAL_KINDS for k in kinds)):
-        raise file_error(path, "elliptical_kinds", f"must be a non-empty list of "
-                         f"{_ELLIPTICAL_KINDS}, got {kinds!r}")
-    G = len(kinds)
-    cs = file_array(path, arrays, "elliptical_c", shape=(G, 2))
-    if (not isinstance(index, list) or len(index) != H
-            or not all(isinstance(g, int) and not isinstance(g, bool) and 0 <= g < G
-                       for g in index)):
-        raise file_error(path, "elliptical_index",
-                         f"must be a list of H = {H} integers in [0, {G})")
-    kinds_arr = np.array(kinds)
-    factors: list = [None] * G
-    for kind, load in (("dense", _load_dense_factors), ("sparse", _load_sparse_factors),
-                       ("used", _load_used_factors)):
-        mine = np.flatnonzero(kinds_arr == kind)
-        if mine.size:
-            for g, f in zip(mine, load(path, arrays, d, mine.size, cs[mine]), strict=True):
-                factors[g] = f
-    return [(factors[g], float(cs[g, 0]), float(cs[g, 1])) if kinds[g] != "used"
-            else (factors[g], 0.0, 1.0) for g in index]
-
-
-_ELLIPTICAL_KINDS = ("dense", "sparse", "used")
-
-
-def _load_dense_factors(path, arrays, d: int, count: int, cs):
-    rs = file_array(path, arrays, "elliptical_r", ndim=3)
-    if rs.shape[0] != count or rs.shape[2] != d:
-        raise file_error(path, "elliptical_r", f"must have shape ({count}, r, d = {d}), "
-                         f"got {rs.shape}")
-    return list(rs)
-
-
-def _load_sparse_factors(path, arrays, d: int, count: int, cs):
-    """Sparse-row dual factors ``R = C^{-1} Psi``: ``C^{-1}`` dense, ``Psi`` as CSR pieces."""
-    cinv = file_array(path, arrays, "elliptical_cinv", ndim=3)
-    n = cinv.shape[1]
-    if cinv.shape != (count, n, n):
-        raise file_error(path, "elliptical_cinv", f"must have shape ({count}, n, n), got "
-                         f"{cinv.shape}")
-    indptr = _int_array(path, arrays, "elliptical_psi_indptr", (count, n + 1))
-    data = file_array(path, arrays, "elliptical_psi_data", ndim=1)
-    indices = _int_array(path, arrays, "elliptical_psi_indices", data.shape)
-    counts = indptr[:, -1]
-    if (np.any(indptr[:, 0] != 0) or np.any(np.diff(indptr, axis=1) < 0)
-            or int(counts.sum()) != data.size):
-        raise file_error(path, "elliptical_psi_indptr", "must be CSR row pointers (starting "
-                         "at 0, non-decreasing) whose totals add up to the stored non-zeros")
-    if indices.size and (indices.min() < 0 or indices.max() >= d):
-        raise file_error(path, "elliptical_psi_indices", f"must lie in [0, d = {d})")
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    return [_SparseProduct(cinv[g], sp.csr_matrix(
-        (data[starts[g]:starts[g + 1]], indices[starts[g]:starts[g + 1]], indptr[g]),
-        shape=(n, d))) for g in range(count)]
-
-
-def _load_used_factors(path, arrays, d: int, count: int, cs):
-    """Sparse-row primal factors ``L_U^{-1}`` on the used features ``U`` (ragged)."""
-    sizes = _int_array(path, arrays, "elliptical_sizes", (count,))
-    if np.any(sizes < 0) or np.any(sizes > d):
-        raise file_error(path, "elliptical_sizes", f"must be {count} sizes in [0, d = {d}]")
-    cols = _int_array(path, arrays, "elliptical_cols", None)
-    linv = file_array(path, arrays, "elliptical_linv_data", ndim=1)
-    if cols.shape != (int(sizes.sum()),):
-        raise file_error(path, "elliptical_sizes", f"{sizes.tolist()} do not add up to the "
-                         f"{cols.size} stored features (elliptical_cols)")
-    if linv.shape != (int((sizes**2).sum()),):
-        raise file_error(path, "elliptical_linv_data", f"must hold sum(sizes^2) = "
-                         f"{int((sizes**2).sum())} entries, got {linv.size}")
-    if np.any(cs[:, 0] <= 0):
-        raise file_error(path, "elliptical_c", "must hold 1 / gamma > 0 in its first column")
-    ends, sq_ends = np.cumsum(sizes), np.cumsum(sizes**2)
-    factors = []
-    for g in range(count):
-        u = int(sizes[g])
-        c = cols[ends[g] - u:ends[g]]
-        if np.any(c < 0) or np.any(c >= d) or np.any(np.diff(c) <= 0):
-            raise file_error(path, "elliptical_cols", f"must be increasing features in [0, {d})")
-        lg = linv[sq_ends[g] - u * u:sq_ends[g]].reshape(u, u)
-        factors.append(_UsedFeaturesFactor(lg, c, 1.0 / float(cs[g, 0])))
-    return factors
-
-
-def _int_array(path, arrays: dict, name: str, shape: tuple | None) -> np.ndarray:
-    if name not in arrays:
-        raise file_error(path, name, "is missing")
-    arr = arrays[name]
-    if arr.dtype.kind not in "iu":
-        raise file_error(path, name, f"must be integers, got dtype {arr.dtype}")
-    if shape is not None and arr.shape != shape:
-        raise file_error(path, name, f"must have shape {shape}, got {arr.shape}")
-    return arr.astype(np.int64)
+    return load_model(path)
 
 
 def _pack_elliptical(factors: list) -> tuple[list[int], dict, list[str]]:

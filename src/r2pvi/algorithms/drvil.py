@@ -75,12 +75,18 @@ def check_b_min(b_min):
     if isinstance(b_min, bool) or not isinstance(b_min, numbers.Real):
         raise TypeError(f"b_min must be 'auto', None or a positive number, got {b_min!r}")
     b = float(b_min)
-    if not (np.isfinite(b) and b > 0):
+    if not (np.isfinite(b) and 0 < b <= B_MIN_MAX):
         raise ValueError(
-            f"b_min must be a finite number > 0 (or 'auto', or None to search b -> 0), "
-            f"got {b_min!r}"
+            f"b_min must be a number in (0, {B_MIN_MAX:g}] (or 'auto', or None to search "
+            f"b -> 0), got {b_min!r}; the dual's b is searched from b_min up on a log grid, "
+            "and beyond the values' range over rho every larger b_min gives the same fit"
         )
     return b
+
+
+# Largest b_min accepted: the search's grid of b reaches a few times b_min, which must stay
+# finite in float64.
+B_MIN_MAX = 1e300
 
 
 class DRVIL(LinearEstimator):
@@ -130,7 +136,8 @@ class DRVIL(LinearEstimator):
         objective is decided by the estimate's error. Without it, a factor with (almost) no
         mass on the lowest values can get its plain estimate instead of a robust one (the
         ridge estimate of ``E[e^{-V/b}]`` crosses 0 as ``b -> 0``). None searches
-        ``b -> 0`` (Ma et al.'s estimator without the assumption).
+        ``b -> 0`` (Ma et al.'s estimator without the assumption). A float must lie in
+        ``(0, 1e300]`` (``B_MIN_MAX``).
     form : {"normalized", "ma"}, default "normalized"
         How the ridge regression estimates ``E_i[e^{-V/b}]``: ``s_i`` times the estimate
         under the row-normalized weights (no ridge shrinkage bias), or Ma et al.'s regression

@@ -114,7 +114,7 @@ class EpsilonGreedy:
         self._act = as_policy_function(policy, self.n_actions)
 
     def sample(self, h, observations, rngs) -> np.ndarray:
-        actions = np.asarray(self._act(h, observations, rngs), dtype=np.int64).copy()
+        actions = np.array(self._act(h, observations, rngs))  # checked by the rollout
         for i, rng in enumerate(rngs):
             if rng.random() < self.epsilon:
                 actions[i] = rng.integers(self.n_actions)
@@ -309,13 +309,34 @@ def _idle_action(space):
     return space.sample()
 
 
-def _check_actions(actions, n: int):
+def _check_actions(actions, n: int, space=None):
+    """The policy's actions for ``n`` observations, each checked to be an element of a
+    ``Discrete`` action ``space`` (integers, or floats with integer values, in
+    ``[start, start + n)``): a ``ValueError`` naming the action and the space, never the
+    environment's bare assertion or a silent cast of 0.5 to 0."""
     a = np.asarray(actions)
     if a.shape != (n,):
         raise ValueError(
             f"the policy must return one action per observation, shape ({n},); got {a.shape}"
         )
-    return a
+    if space is None or not (hasattr(space, "n") and hasattr(space, "start")):
+        return a  # not Discrete: the environment checks its own actions
+    lo, hi = int(space.start), int(space.start) + int(space.n)
+    if a.dtype.kind in "iu":
+        bad = (a < lo) | (a >= hi)
+    elif a.dtype.kind == "f":
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(a) | (a != np.round(a)) | (a < lo) | (a >= hi)
+    else:
+        bad = np.ones(n, bool)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"the policy returned action {getattr(a[i], 'item', lambda: a[i])()!r} (for "
+            f"observation {i} of the batch), "
+            f"which is not in the environment's action space {space}: actions must be "
+            f"integers in [{lo}, {hi})")
+    return a.astype(np.int64)
 
 
 def _final_obs(info, i, fallback):
@@ -347,9 +368,10 @@ def _advance(slots, rows, a, step, max_steps, record, seeds, results, bar) -> li
     return finished
 
 
-def _act(act, slots, rows, obs, rngs):
+def _act(act, slots, rows, obs, rngs, space=None):
     h = np.array([slots[i].t for i in rows], dtype=np.int64)
-    return _check_actions(act(h, obs[rows], [rngs[slots[i].episode] for i in rows]), len(rows))
+    return _check_actions(act(h, obs[rows], [rngs[slots[i].episode] for i in rows]), len(rows),
+                          space)
 
 
 def _run_per_episode(venv, act, seeds, rngs, max_steps, record, options, bar):
@@ -364,7 +386,7 @@ def _run_per_episode(venv, act, seeds, rngs, max_steps, record, options, bar):
     idle_action = _idle_action(venv.single_action_space)
     while any(s is not None for s in slots):
         rows = [i for i, s in enumerate(slots) if s is not None]
-        a = _act(act, slots, rows, obs, rngs)
+        a = _act(act, slots, rows, obs, rngs, venv.single_action_space)
         actions = np.array([idle_action] * N)
         actions[rows] = a
         step = venv.step(actions)
@@ -398,7 +420,7 @@ def _run_batches(venv, act, seeds, rngs, max_steps, record, options, bar):
         slots = [_Recorder(e, obs[i], record) for i, e in enumerate(batch)]
         live = list(range(len(batch)))
         while live:
-            a = _act(act, slots, live, obs, rngs)
+            a = _act(act, slots, live, obs, rngs, venv.single_action_space)
             actions = np.zeros(N, dtype=np.int64)
             actions[live] = a
             step = venv.step(actions)

@@ -7,7 +7,7 @@ import numbers
 import numpy as np
 
 from .._compat import not_fitted_error
-from .._io import load_npz, save_npz
+from .._io import file_array, file_error, load_npz, save_npz
 from ._base import SAVEABLE_MAPS
 
 __all__ = ["save_feature_map", "load_feature_map", "SaveableMap"]
@@ -52,19 +52,68 @@ def _encode(state_map, prefix: str, arrays: dict) -> dict:
     return {"class": name, "params": params, "fitted": fitted}
 
 
-def _decode(spec: dict, prefix: str, arrays: dict):
+def _decode(spec, prefix: str, arrays: dict, path):
+    """The observation map described by ``spec`` (the header's ``state_map``), every field
+    checked: the class, the parameters (through ``fit``'s own checks), and each fitted array
+    (present, numeric, finite, of the shape and, where ``fit`` determines it, the value that
+    fitting the map on its own ranges gives)."""
+    if not isinstance(spec, dict):
+        raise file_error(path, "state_map", f"must be a JSON object, got {type(spec).__name__}")
     cls = _registry().get(spec.get("class"))
-    if cls is None:
-        raise ValueError(f"unknown feature map class {spec.get('class')!r}")
-    params = {k: arrays[v["__array__"]] if isinstance(v, dict) else v
-              for k, v in spec["params"].items()}
-    m = cls(**params)
-    for key in spec["fitted"]:
-        value = arrays[f"{prefix}fitted_{key}"]
-        if value.ndim == 0:
-            value = value.item()
-        setattr(m, key, value)
+    if cls is None or not isinstance(spec.get("class"), str):
+        raise file_error(path, "state_map.class", f"is {spec.get('class')!r}, not one of "
+                         f"{sorted(_registry())}")
+    raw, fitted = spec.get("params"), spec.get("fitted")
+    if not isinstance(raw, dict):
+        raise file_error(path, "state_map.params", "must be a JSON object")
+    if not isinstance(fitted, list) or not all(isinstance(k, str) for k in fitted):
+        raise file_error(path, "state_map.fitted", "must be a list of attribute names")
+    params = {}
+    for key, value in raw.items():
+        if isinstance(value, dict):
+            name = str(value.get("__array__"))
+            file_array(path, arrays, name)  # present, numeric, finite
+            value = arrays[name]
+        params[key] = value
+    try:
+        m = cls(**params)
+    except TypeError as exc:
+        raise file_error(path, "state_map.params", f"do not fit {cls.__name__}: {exc}") from None
+    for key in fitted:
+        name = f"{prefix}fitted_{key}"
+        file_array(path, arrays, name)  # present, numeric, finite
+        value = arrays[name]
+        setattr(m, key, value.item() if value.ndim == 0 else value)
+    _check_fitted(path, prefix, m, cls, params, fitted)
     return m
+
+
+def _check_fitted(path, prefix: str, m, cls, params: dict, fitted: list) -> None:
+    """The loaded map's fitted attributes are those ``fit`` makes from its parameters and its
+    observation ranges: refit twice on ``[low_, high_]`` (values that differ between the two
+    refits are random, e.g. tile offsets without a seed: only their shapes are compared)."""
+    low, high = getattr(m, "low_", None), getattr(m, "high_", None)
+    if low is None or high is None or np.ndim(low) != 1 or np.shape(low) != np.shape(high) \
+            or np.any(np.asarray(high) <= np.asarray(low)):
+        raise file_error(path, f"{prefix}fitted_high_", "must be above low_ in every dimension "
+                         "(the fitted observation ranges)")
+    try:
+        refits = [cls(**params).fit(np.stack([low, high])) for _ in range(2)]
+    except (TypeError, ValueError) as exc:
+        raise file_error(path, "state_map.params", f"fail {cls.__name__}'s checks: {exc}") \
+            from None
+    want = sorted(k for k in vars(refits[0]) if k.endswith("_") and not k.startswith("_"))
+    if sorted(fitted) != want:
+        raise file_error(path, "state_map.fitted", f"lists {sorted(fitted)}, a fitted "
+                         f"{cls.__name__} has {want}")
+    for key in want:
+        got, ref, other = (np.asarray(getattr(x, key)) for x in (m, *refits))
+        if got.shape != ref.shape:
+            raise file_error(path, f"{prefix}fitted_{key}", f"must have shape {ref.shape}, got "
+                             f"{got.shape}")
+        if np.array_equal(ref, other) and not np.allclose(got, ref, rtol=1e-12, atol=0.0):
+            raise file_error(path, f"{prefix}fitted_{key}", f"is not what {cls.__name__} "
+                             "fits from its parameters and ranges: the file was altered")
 
 
 def save_feature_map(feature_map, path):
@@ -96,10 +145,18 @@ def save_feature_map(feature_map, path):
 def load_feature_map(path):
     """Load a feature map written by :func:`save_feature_map` (fitted, ready to transform)."""
     arrays, header = load_npz(path, "feature_map", FEATURE_MAP_FORMAT_VERSION)
-    state_map = _decode(header["state_map"], "state_", arrays)
-    n_actions = header.get("n_actions")
-    crossing = SAVEABLE_MAPS["ActionCrossing"]
-    return state_map if n_actions is None else crossing(state_map, int(n_actions))
+    if "state_map" not in header:
+        raise file_error(path, "state_map", "is missing")
+    state_map = _decode(header["state_map"], "state_", arrays, path)
+    if "n_actions" not in header:
+        raise file_error(path, "n_actions", "is missing (null for an observation map)")
+    n_actions = header["n_actions"]
+    if n_actions is None:
+        return state_map
+    if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 1:
+        raise file_error(path, "n_actions", f"must be null or an integer >= 1, got "
+                         f"{n_actions!r}")
+    return SAVEABLE_MAPS["ActionCrossing"](state_map, n_actions)
 
 
 class SaveableMap:

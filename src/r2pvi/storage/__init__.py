@@ -69,6 +69,7 @@ from ._behaviour import (  # noqa: F401
 from ._checks import (  # noqa: F401
     SimplexFeatureWarning,
     check_features_chunk,
+    check_map_actions,
     check_reward_noise,
     layout_step_major,
     simplex_flags,

@@ -3,13 +3,12 @@ trajectory's next taken action (``phi[k, h+1]``), rebuilt bitwise when read."""
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
 import numpy as np
 
-from ._fields import ArrayField, Field, FileField, _as_float64
+from ._fields import ArrayField, Field, FileField, _as_float64, npy_header
 from ._finite import Origin, array_origin, file_origin, nonfinite_error
 from ._format import _write_npy_header
 from ._next import NextStates, StoredNext
@@ -68,21 +67,10 @@ def behaviour_split(following, rows):
 class RowFile:
     """Rows ``(n, ...)`` of a ``.npy`` file read by range with ``pread`` (the side table)."""
 
-    def __init__(self, path):
+    def __init__(self, path, name: str = "next_side"):
         self.path = Path(path)
-        with open(self.path, "rb") as fh:
-            version = np.lib.format.read_magic(fh)
-            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                    else np.lib.format.read_array_header_2_0)
-            shape, fortran, dtype = read(fh)
-            self.offset = fh.tell()
-        if fortran or dtype.hasobject or len(shape) < 1:
-            raise ValueError(f"{self.path} is not a C-ordered numeric .npy file")
-        self.shape, self.dtype = tuple(shape), np.dtype(dtype)
+        self.shape, self.dtype, self.offset = npy_header(self.path, name, 1)
         self._row = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
-        size = self.offset + self.shape[0] * self._row
-        if os.path.getsize(self.path) < size:
-            raise ValueError(f"{self.path} is truncated: expected {size} bytes")
 
     def read(self, start, stop):
         out = np.empty((stop - start,) + self.shape[1:], dtype=self.dtype)

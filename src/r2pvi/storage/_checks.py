@@ -65,7 +65,9 @@ def step_major(x, name: str, ndim: int, dtype=None) -> np.ndarray:
     No copy when ``x`` already is one in memory (e.g. ``a.transpose(1, 0, ...)`` of a
     C-contiguous ``(H, K, ...)`` array of float32 or float64); otherwise exactly one.
     """
-    raw = np.asarray(x) if not isinstance(x, str) else None
+    from .._validation import as_array
+
+    raw = as_array(x, name) if not isinstance(x, str) else None
     if raw is None or raw.dtype.kind not in "biuf":
         if raw is not None and raw.dtype.kind == "c":
             raise TypeError(f"{name} must be real, got a complex array")
@@ -214,3 +216,23 @@ def _counted(exc: ValueError, phi, rewards, next_values, chunk) -> ValueError:
     rest = msg.split(" entries", 1)[1] if " entries" in msg else ""
     kind = "infinite" if name == "next_values" else "NaN or infinite"
     return ValueError(f"{name} contains {n} {kind} entries{rest}")
+
+
+def check_map_actions(feature_map, n_actions, source: str | None = None) -> None:
+    """``n_actions`` agrees with a feature map that records its own (``cross_actions``);
+    ``source`` names where ``n_actions`` comes from (a dataset's manifest), else the caller's
+    argument."""
+    own = getattr(feature_map, "n_actions", None)
+    if not (isinstance(own, int | np.integer) and not isinstance(own, bool)
+            and isinstance(n_actions, int | np.integer) and int(own) != int(n_actions)):
+        return
+    if source is not None:
+        raise ValueError(
+            f"{source} n_actions = {int(n_actions)}, but the feature map "
+            f"({type(feature_map).__name__}) was built for n_actions={int(own)}: pass the "
+            "feature map the dataset was built with")
+    raise ValueError(
+        f"n_actions={int(n_actions)} disagrees with the feature map, built for "
+        f"n_actions={int(own)} ({type(feature_map).__name__}); pass n_actions={int(own)} "
+        f"or build the map with cross_actions(..., n_actions={int(n_actions)})"
+    )

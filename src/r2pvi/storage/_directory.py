@@ -8,22 +8,31 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import _held_kind
+from .._io import _held_kind, file_error
 from ._behaviour import BEHAVIOUR_VERSION, BehaviourNext, RowFile, _next_form, _write_behaviour
-from ._checks import check_float32_range
-from ._fields import Field, FileField, MappedField, widen_range
+from ._checks import check_float32_range, check_map_actions
+from ._fields import Field, FileField, MappedField, load_npy, widen_range
 from ._finite import file_origin
 from ._format import (
     FORMAT_VERSION,
     GRAM_FILE,
     KIND,
+    MANIFEST,
     SUMS_FILE,
     _add_gram,
     _finish,
-    _manifest,
     _temp_dir,
     _write_npy_header,
+    check_target,
+    clean_stale,
     manifest_range,
+)
+from ._manifest import (
+    check_dtype,
+    check_stored_sums,
+    read_manifest,
+    stored_field,
+    whole_field,
 )
 from ._next import MapNext, NextStates, StoredNext, TableNext
 from ._source import StepSource
@@ -35,6 +44,7 @@ def open_directory(path, feature_map=None) -> StepSource:
     A dataset stored as observations (``"phi": "map"`` or ``"next": "map"`` in the
     manifest) needs the ``feature_map`` it was built with."""
     path = Path(os.fspath(path))
+    clean_stale(path)
     if not path.exists():
         hint = ("; a .npz dataset file is read into memory with OfflineDataset.load(path)"
                 if path.suffix == ".npz" else "")
@@ -49,14 +59,17 @@ def open_directory(path, feature_map=None) -> StepSource:
             held, "not a dataset directory")
         raise ValueError(f"{path} is a file, {how}; OfflineDataset.open opens the dataset "
                          "directories written by save(dir) or DatasetWriter")
-    mf = _manifest(path)
+    mf = read_manifest(path)
     files = mf["files"]
+    store = mf.get("dtype")
 
-    def field(name):
-        f = FileField(path / files[name])
-        if list(f.shape) != list(mf["shapes"][name]):
-            raise ValueError(f"{path / files[name]} has shape {f.shape}, the manifest says "
-                             f"{mf['shapes'][name]}")
+    def field(name, kinds="", dtype=None):
+        return stored_field(path, mf, name, kinds, dtype)
+
+    def features(name):  # stored features: the manifest's dtype (float32 or float64)
+        f = field(name, "f", store)
+        if f.dtype not in (np.float32, np.float64):
+            check_dtype(f.path, name, f.dtype, exact=np.float64)
         return f
 
     needs_map = mf.get("phi", "stored") == "map" or mf["next"] == "map"
@@ -65,54 +78,67 @@ def open_directory(path, feature_map=None) -> StepSource:
             f"{path} stores observations, not features: pass the feature_map it was built "
             "with, OfflineDataset.open(path, feature_map=f) with f(observations, actions) -> "
             "(n, d)")
-    d = int(mf["n_features"])
+    H, K, d, A = (mf[k] for k in ("horizon", "n_trajectories", "n_features", "n_actions"))
+    if needs_map:
+        check_map_actions(feature_map, A, f"the manifest of {path} says")
     if mf.get("phi", "stored") == "map":
-        phi: Field = MappedField(field("observations"), field("actions"), feature_map, d)
+        phi: Field = MappedField(field("observations"), field("actions", "iu"), feature_map, d)
+        _probe_map(path, lambda: phi.read(0, 0, 1))
     else:
-        phi = field("phi")
-    rewards = field("rewards")
+        phi = features("phi")
+    rewards = field("rewards", dtype=np.float64)
+    kv = field("next_values", dtype=np.float64) if "next_values" in files else None
     if mf["next"] == "map":
-        kv = field("next_values") if "next_values" in files else None
-        nxt: NextStates = MapNext(field("next_observations"), feature_map,
-                                  int(mf["n_actions"]), d, kv)
+        nxt: NextStates = MapNext(field("next_observations"), feature_map, A, d, kv)
+        _probe_map(path, lambda: nxt.features(0, 0, 1))
     elif mf["next"] == "stored":
-        nxt = StoredNext(field("next_phi"),
-                                     field("next_values") if "next_values" in files else None,
-                                     mf.get("nonnegative_next_phi"))
+        nxt = StoredNext(features("next_phi"), kv, mf.get("nonnegative_next_phi"))
     elif mf["next"] == "behaviour":
-        nxt = _open_behaviour(path, mf, field, phi)
-    elif mf["next"] == "table":
-        table = np.load(path / files["next_table"], allow_pickle=False)
-        kt = (np.load(path / files["next_table_values"], allow_pickle=False)
+        nxt = _open_behaviour(path, mf, field, features, phi, kv)
+    else:  # "table" (read_manifest knows no other form)
+        table = whole_field(path, mf, "next_table", dtype=np.float64)
+        if table.ndim not in (3, 4) or table.shape[-2:] != (A, d) or (
+                table.ndim == 4 and table.shape[0] != H):
+            raise file_error(path / files["next_table"], "next_table",
+                             f"must have shape (S, A, d) or (H, S, A, d) with (H, A, d) = "
+                             f"{(H, A, d)} (the manifest's horizon, n_actions, n_features), "
+                             f"got {table.shape}; the dataset is damaged")
+        kt = (whole_field(path, mf, "next_table_values", (table.shape[-3], A), dtype=np.float64,
+                          finite="no-inf", what="(S, A) known values")
               if "next_table_values" in files else None)
-        nxt = TableNext(field("next_index"), table, kt, {
+        nxt = TableNext(field("next_index", "iu"), table, kt, {
             n: file_origin(path / files[n]) for n in ("next_table", "next_table_values")
             if n in files})
-    else:
-        raise ValueError(f"{path}: unknown next-state form {mf['next']!r}")
     extras = {}
     for name in mf.get("extras", []):
-        extras[name] = np.load(path / f"extra_{name}.npy", mmap_mode="r", allow_pickle=False)
-    grams = None
-    if "gram" in files:
-        grams = np.load(path / files["gram"], allow_pickle=False)
-        H, d_ = int(mf["horizon"]), int(mf["n_features"])
-        if grams.shape != (H, d_, d_) or grams.dtype != np.float64:
-            raise ValueError(f"{path / files['gram']} must hold (H, d, d) = {(H, d_, d_)} "
-                             f"float64 Gram matrices, got {grams.shape} {grams.dtype}")
-    sums = None
-    if "phi_sums" in files:  # optional (datasets written before it have none)
-        sums = np.load(path / files["phi_sums"], allow_pickle=False)
-        H, d_ = int(mf["horizon"]), int(mf["n_features"])
-        if sums.shape != (H, d_) or sums.dtype != np.float64:
-            raise ValueError(f"{path / files['phi_sums']} must hold (H, d) = {(H, d_)} "
-                             f"float64 column sums, got {sums.shape} {sums.dtype}")
+        file = path / f"extra_{name}.npy"
+        extras[name] = load_npy(file, f"extras.{name}", mmap=True)
+        if extras[name].shape[:2] != (K, H):
+            raise file_error(file, f"extras.{name}", f"must start with (K, H) = {(K, H)}, "
+                             f"got shape {extras[name].shape}; the dataset is damaged")
+    grams = (whole_field(path, mf, "gram", (H, d, d), dtype=np.float64,
+                         what="(H, d, d) Gram matrices") if "gram" in files else None)
+    sums = (whole_field(path, mf, "phi_sums", (H, d), dtype=np.float64,
+                        what="(H, d) column sums")
+            if "phi_sums" in files else None)  # optional (datasets written before it have none)
+    check_stored_sums(path, mf, grams, sums, K)
     return StepSource(phi, rewards, nxt, extras, mf.get("nonnegative_phi"), grams=grams,
                       sums=sums, reward_range=manifest_range(mf, "reward_range"),
                       reward_noise=_manifest_noise(path, mf),
                       row_sums=manifest_range(mf, "phi_row_sums"),
                       stored_files={n: path / files[n] for n in ("gram", "phi_sums")
                                     if n in files})
+
+
+def _probe_map(path: Path, read) -> None:
+    """The feature map gives the manifest's ``n_features`` per row (checked on one row)."""
+    try:
+        read()
+    except ValueError as exc:
+        if "feature_map returned shape" not in str(exc):
+            raise
+        raise file_error(path / MANIFEST, "n_features", f"disagrees with the feature map: {exc}; "
+                         "pass the feature map the dataset was built with") from None
 
 
 def _manifest_noise(path: Path, mf: dict) -> float:
@@ -125,52 +151,38 @@ def _manifest_noise(path: Path, mf: dict) -> float:
     return float(noise)
 
 
-def _open_behaviour(path: Path, mf: dict, field, phi: Field) -> BehaviourNext:
+def _open_behaviour(path: Path, mf: dict, field, features, phi: Field, kv) -> BehaviourNext:
     """The behaviour form's fields, checked against the manifest (each error names the
     field)."""
     files = mf["files"]
     spec = mf.get("next_behaviour")
-    if not isinstance(spec, dict) or not isinstance(spec.get("version"), int):
-        raise ValueError(f"{path}: the manifest's 'next_behaviour' entry (a dict with a "
-                         "'version') is missing or malformed")
+    where = path / MANIFEST
+    if not isinstance(spec, dict) or isinstance(spec.get("version"), bool) or not isinstance(
+            spec.get("version"), int):
+        raise file_error(where, "next_behaviour", "(an object with a 'version') is missing or "
+                         "malformed; the manifest is damaged")
     if spec["version"] > BEHAVIOUR_VERSION:
         raise ValueError(f"{path}: next_behaviour version {spec['version']}; this r2pvi reads "
                          f"versions <= {BEHAVIOUR_VERSION}: upgrade r2pvi")
-    for name in ("next_action", "next_rest", "next_side", "next_side_offsets"):
-        if name not in files or name not in mf.get("shapes", {}):
-            raise ValueError(f"{path}: the manifest lists no {name!r} field, which the "
-                             "behaviour next-state form needs")
-        if not (path / files[name]).is_file():
-            raise ValueError(f"{path}: the {name!r} field's file {files[name]} is missing")
     if not isinstance(phi, FileField):
-        raise ValueError(f"{path}: the behaviour next-state form needs stored features "
-                         "('phi': 'stored')")
-    H, K, d = phi.shape
-    A = int(mf["n_actions"])
-    store = phi.dtype
-    action, rest = field("next_action"), field("next_rest")
-    if action.dtype.kind != "i":
-        raise ValueError(f"{path}: next_action must hold signed integers, got {action.dtype}")
-    if action.shape != (H, K):
-        raise ValueError(f"{path}: next_action has shape {action.shape}, expected {(H, K)}")
-    if rest.shape != (H, K, A - 1, d) or rest.dtype != store:
-        raise ValueError(f"{path}: next_rest must be {(H, K, A - 1, d)} {store}, got "
-                         f"{rest.shape} {rest.dtype}")
-    side = RowFile(path / files["next_side"])
-    if list(side.shape) != list(mf["shapes"]["next_side"]) or side.shape[1:] != (d,) or \
-            side.dtype != store:
-        raise ValueError(f"{path}: next_side must be (n_side, d) {store} as the manifest says "
-                         f"{mf['shapes']['next_side']}, got {side.shape} {side.dtype}")
-    offsets = np.load(path / files["next_side_offsets"], allow_pickle=False)
-    if (offsets.shape != (H + 1,) or offsets.dtype.kind not in "iu" or offsets[0] != 0
-            or (np.diff(offsets) < 0).any() or (np.diff(offsets) > K).any()
+        raise file_error(where, "phi", "must be 'stored': the behaviour next-state form needs "
+                         "stored features")
+    K = phi.shape[1]
+    action, rest = field("next_action", "i"), features("next_rest")
+    side = RowFile(path / files["next_side"], "next_side")
+    if list(side.shape) != list(mf["shapes"]["next_side"]):
+        raise file_error(side.path, "next_side", f"has shape {side.shape}, the manifest says "
+                         f"{mf['shapes']['next_side']}; the dataset is damaged")
+    check_dtype(side.path, "next_side", side.dtype, exact=rest.dtype)
+    offsets = whole_field(path, mf, "next_side_offsets", kinds="iu")
+    if (offsets[0] != 0 or (np.diff(offsets) < 0).any() or (np.diff(offsets) > K).any()
             or offsets[-1] != side.shape[0] or offsets[-1] - offsets[-2] != K
             or spec.get("n_side") != side.shape[0]):
-        raise ValueError(
-            f"{path}: next_side_offsets must be (H+1,) = ({H + 1},) non-decreasing integers "
-            f"from 0 to the side table's {side.shape[0]} rows (at most K per step, K at the "
-            "last step, n_side in the manifest): the dataset is corrupt")
-    kv = field("next_values") if "next_values" in files else None
+        raise file_error(
+            path / files["next_side_offsets"], "next_side_offsets",
+            f"must be non-decreasing integers from 0 to the side table's {side.shape[0]} rows "
+            "(at most K per step, K at the last step, n_side in the manifest): the dataset is "
+            "damaged")
     return BehaviourNext(action, rest, phi, side, offsets, kv, mf.get("nonnegative_next_phi"))
 
 
@@ -208,8 +220,7 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
     the next step's taken-action features (:class:`BehaviourNext`)."""
     path = Path(os.fspath(path))
     next_form = _next_form(next_form)
-    if path.exists() and not overwrite:  # before any work (checked again at the rename)
-        raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
+    check_target(path, overwrite)  # before any work (checked again at the rename)
     store = np.dtype(dtype) if dtype is not None else np.dtype(
         np.float32 if source.phi.dtype == np.float32 else np.float64)
     if store not in (np.float32, np.float64):
@@ -277,10 +288,13 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
             kind = "table"
             put("next_index", nxt.index, np.int64)
             files["next_table"] = "next_table.npy"
-            np.save(tmp / files["next_table"], np.asarray(nxt.table), allow_pickle=False)
+            np.save(tmp / files["next_table"], np.ascontiguousarray(nxt.table, dtype=np.float64),
+                    allow_pickle=False)
             if nxt.known_table is not None:
                 files["next_table_values"] = "next_table_values.npy"
-                np.save(tmp / files["next_table_values"], nxt.known_table, allow_pickle=False)
+                np.save(tmp / files["next_table_values"],
+                        np.ascontiguousarray(nxt.known_table, dtype=np.float64),
+                        allow_pickle=False)
         else:
             kind = "stored"
             feats = nxt.next_phi if isinstance(nxt, StoredNext) else _Computed(

@@ -3,72 +3,125 @@ matrices written with the features, atomic creation of a dataset directory."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
 import shutil
+import socket
 import uuid
 from pathlib import Path
 
 import numpy as np
 
+from .._io import DATASET_DIRECTORY, DATASET_KIND, EMPTY_DIRECTORY, check_replaceable
 from ._fields import CHUNK
 
 FORMAT_VERSION = 2
-FIRST_DIRECTORY_VERSION = 2  # format 1 is the legacy single-file .npz
-KIND = "r2pvi.OfflineDataset"
+KIND = DATASET_KIND
 MANIFEST = "manifest.json"
 GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)
 SUMS_FILE = "phi_sums.npy"  # (H, d) float64 Phi_h^T 1, the column sums (optional)
 
 
-def _manifest(path: Path) -> dict:
-    mf = path / MANIFEST
-    if not mf.is_file():
-        raise ValueError(f"{path} is not an r2pvi dataset directory (no {MANIFEST})")
-    with open(mf) as fh:
-        header = json.load(fh)
-    if header.get("kind") != KIND:
-        raise ValueError(f"{path} holds a {header.get('kind')!r}, not a {KIND!r}")
-    version = header.get("format_version")
-    if (isinstance(version, bool) or not isinstance(version, int)
-            or version < FIRST_DIRECTORY_VERSION):
-        # dataset directories exist from format version 2 on: anything else is not one
-        raise ValueError(
-            f"{path}: the manifest's format_version must be an integer >= "
-            f"{FIRST_DIRECTORY_VERSION} (the dataset directory format), got {version!r}; the "
-            "manifest is damaged or was not written by r2pvi"
-        )
-    if version > FORMAT_VERSION:
-        raise ValueError(
-            f"{path} has format version {version}; this r2pvi reads version "
-            f"{FORMAT_VERSION}: upgrade r2pvi"
-        )
-    return header
+# A save writes ``.NAME.tmp-PID-HOST-RAND`` next to ``NAME`` and renames it into place; an
+# overwrite moves the old dataset to ``.NAME.old-PID-HOST-RAND`` for the moment of the swap.
+# HOST is a hash of the host name (temporaries on a shared file system belong to a process
+# on one host: only that host can tell whether it is alive).
+_HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:8]
+# What a dataset save may replace (see r2pvi._io.what_is_at): a dataset directory holding
+# only its own files, a dataset .npz file (the single-file format), an empty directory.
+REPLACEABLE = frozenset({DATASET_DIRECTORY, EMPTY_DIRECTORY, "OfflineDataset"})
+
+
+def check_target(path: Path, overwrite: bool) -> None:
+    """A ``FileExistsError`` unless a dataset may be saved at ``path`` (see
+    :data:`REPLACEABLE`); checked before any work and again at the rename, each time after
+    :func:`clean_stale` (which may put back the dataset of an interrupted overwrite)."""
+    clean_stale(path)
+    check_replaceable(path, REPLACEABLE, "a dataset", overwrite=overwrite)
+
+
+def _side_name(path: Path, what: str) -> Path:
+    return path.parent / f".{path.name}.{what}-{os.getpid()}-{_HOST}-{uuid.uuid4().hex[:8]}"
 
 
 def _temp_dir(path: Path) -> Path:
-    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp = _side_name(path, "tmp")
     tmp.mkdir(parents=True)
     return tmp
+
+
+def _alive(pid: int, host: str | None) -> bool:
+    """Whether process ``pid`` may still be running (True whenever it cannot be told: another
+    host, another user's process, a platform without a harmless liveness probe)."""
+    if (host is not None and host != _HOST) or os.name != "posix" or pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)  # signal 0: no signal sent, only the existence check
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: alive, another user's
+        return True
+    return True
+
+
+def _stale(path: Path):
+    """``(kind, side path)`` of the temporaries of saves to ``path`` whose process is gone
+    (killed before it could remove them): ``kind`` is "tmp" or "old"."""
+    pattern = re.compile(re.escape(f".{path.name}.") + r"(tmp|old)-(\d+)-(?:([0-9a-f]{8})-)?"
+                         r"[0-9a-f]{8}$")
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return
+    for entry in entries:
+        m = pattern.match(entry.name)
+        if m and not _alive(int(m.group(2)), m.group(3)):
+            yield m.group(1), Path(entry.path)
+
+
+def clean_stale(path: Path) -> None:
+    """Remove what saves to ``path`` killed part-way (kill -9, power loss) left next to it:
+    temporary directories of processes that are gone, and the replaced dataset of an
+    interrupted overwrite, which is put back at ``path`` if the new one never got there (a
+    failed save keeps the old dataset). Temporaries of live processes (or whose process
+    cannot be checked) are left alone; nothing here ever raises (a read-only directory, a
+    race with another cleaner)."""
+    for kind, side in sorted(_stale(path)):  # "old" before "tmp"
+        try:
+            if kind == "old" and not os.path.lexists(path):
+                os.replace(side, path)
+            elif side.is_dir() and not side.is_symlink():
+                shutil.rmtree(side)
+            else:
+                side.unlink()
+        except OSError:
+            pass
 
 
 def _finish(tmp: Path, path: Path, manifest: dict, overwrite: bool) -> Path:
     with open(tmp / MANIFEST, "w") as fh:
         json.dump(manifest, fh, indent=1, sort_keys=True)
-    if path.exists():
-        if not overwrite:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise FileExistsError(f"{path} exists; pass overwrite=True or choose a new path")
-        old = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
-        was_dir = path.is_dir()
-        os.replace(path, old)
-        os.replace(tmp, path)
-        if was_dir:
-            shutil.rmtree(old, ignore_errors=True)
-        else:  # a file (a legacy .npz, say) replaced by the directory
-            old.unlink(missing_ok=True)
-    else:
+    try:
+        check_target(path, overwrite)  # again: the path may have changed meanwhile
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if not os.path.lexists(path):
         os.replace(tmp, path)  # atomic: readers see the old state or the complete dataset
+        return path
+    old = _side_name(path, "old")
+    os.replace(path, old)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        os.replace(old, path)  # a failed save keeps the old dataset
+        raise
+    if old.is_dir():
+        shutil.rmtree(old, ignore_errors=True)
+    else:  # a dataset .npz file (the single-file format) replaced by the directory
+        old.unlink(missing_ok=True)
     return path
 
 

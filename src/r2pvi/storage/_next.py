@@ -174,13 +174,25 @@ class TableNext(NextStates):
     def _table(self, h):
         return self.table if self.table.ndim == 3 else self.table[h]
 
+    def _index(self, h, start, stop, rows=None):
+        """Next-state indices of samples ``start:stop`` of step ``h``, each checked to be a
+        state of the table (a damaged index file is an error, never another state's row)."""
+        idx = self.index.read(h, start, stop) if rows is None else rows
+        S = self.table.shape[-3]
+        if idx.size and (idx.min() < 0 or idx.max() >= S):
+            k = start + int(np.flatnonzero((idx < 0) | (idx >= S))[0])
+            raise ValueError(f"next_index[h={h}, k={k}] = {int(idx[k - start])} is not a "
+                             f"state of the {S}-state next-state table: the dataset is "
+                             "damaged")
+        return idx
+
     def features(self, h, start=0, stop=None):
-        return self._table(h)[self.index.read(h, start, stop)]
+        return self._table(h)[self._index(h, start, stop)]
 
     def known(self, h, start=0, stop=None):
         if self.known_table is None:
             return None
-        return self.known_table[self.index.read(h, start, stop)]
+        return self.known_table[self._index(h, start, stop)]
 
     def origin(self, known=False):
         name = "next_table_values" if known else "next_table"
@@ -210,7 +222,7 @@ class TableNext(NextStates):
             raise self.nonfinite(h, None, exc) from None
         out = np.empty(n) if out is None else out
         for s, e, idx in self.index.chunks(h, chunk):
-            np.take(v_table, idx, out=out[s:e])
+            np.take(v_table, self._index(h, s, e, idx), out=out[s:e])
         return out
 
     def take(self, idx):

@@ -21,6 +21,7 @@ from ._format import (
     _finish,
     _temp_dir,
     _write_npy_header,
+    check_target,
 )
 
 
@@ -45,7 +46,9 @@ class DatasetWriter:
     check_simplex : bool, default True
         Warn once (at :meth:`close`) when features leave the simplex.
     overwrite : bool, default False
-        Replace an existing dataset at ``path``.
+        Replace an existing dataset at ``path`` (a dataset directory holding only its own
+        files, a dataset ``.npz`` file, or an empty directory); anything else there is a
+        ``FileExistsError``, as without ``overwrite``.
     reward_noise : float, default 0.0
         The rewards' noise level, recorded in the manifest (``OfflineDataset.reward_noise``:
         ``fit`` lets rewards pass ``[0, r_max]`` by 8 of it).
@@ -108,8 +111,7 @@ class DatasetWriter:
         self.overwrite = overwrite
         self.next_form = _next_form(next_form)
         self.reward_noise = check_reward_noise(reward_noise)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path} exists; pass overwrite=True or choose a new path")
+        check_target(self.path, overwrite)  # before any work (checked again at close)
         self._tmp: Path | None = _temp_dir(self.path)
         # A writer dropped without close() leaves no temporary directory behind.
         self._cleanup = weakref.finalize(self, shutil.rmtree, str(self._tmp), True)
