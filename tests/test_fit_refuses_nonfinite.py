@@ -208,7 +208,7 @@ def test_known_values_files_may_hold_nan_but_not_infinities(tmp_path):
              "step 0, trajectory 10, action 1")
 
 
-def test_next_state_tables_are_checked_where_the_fit_uses_them(tmp_path):
+def test_a_damaged_next_state_table_is_refused_when_the_dataset_is_opened(tmp_path):
     rng = np.random.default_rng(2)
     table = rng.dirichlet(np.ones(D), (5, A))
     idx = rng.integers(5, size=(K, H))
@@ -216,8 +216,7 @@ def test_next_state_tables_are_checked_where_the_fit_uses_them(tmp_path):
     ds.save(tmp_path / "t")
     path = tmp_path / "t"
     _damage(path, "next_table.npy", (3, 1, 2), np.nan)
-    _refused(path, "next_table.npy", (3, 1, 2),
-             lambda: R2PVI("tv", 0.5).fit(OfflineDataset.open(path)), "next state 3")
+    _refused(path, "next_table.npy", (3, 1, 2), lambda: OfflineDataset.open(path))
 
 
 @pytest.mark.parametrize("value", [np.nan, np.inf])
@@ -296,3 +295,21 @@ def test_an_infinity_beside_zeros_is_named_not_warned(tmp_path, source, field):
     for est in (R2PVI("tv", 0.5), R2PVI("tv", 0.5, reward_weights=theta), R2PVI("chi2", 0.5)):
         with pytest.raises(ValueError, match=r"holds -inf.*trajectory 5"):
             est.fit(ds)
+
+
+def _fmap(x, a):
+    x = np.asarray(x, dtype=float).reshape(len(x), -1)
+    return np.stack([x[:, 0] * (a == 0), x[:, 0] * (a == 1), 1 - x[:, 0]], axis=1)
+
+
+@pytest.mark.parametrize("which", ["states", "next_states"])
+def test_stored_observations_must_be_finite_and_rectangular(which):
+    rng = np.random.default_rng(3)
+    args = {"states": rng.random((20, 3, 1)), "actions": rng.integers(2, size=(20, 3)),
+            "rewards": rng.random((20, 3)), "next_states": rng.random((20, 3, 1))}
+    args[which][4, 1, 0] = np.nan
+    with pytest.raises(ValueError, match=re.escape(f"{which}[4, 1]")):
+        OfflineDataset.from_observations(feature_map=_fmap, n_actions=2, **args)
+    args[which] = [[0.1], [0.2, 0.3]]
+    with pytest.raises(ValueError, match=f"{which} must be a rectangular array"):
+        OfflineDataset.from_observations(feature_map=_fmap, n_actions=2, **args)

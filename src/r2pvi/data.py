@@ -315,7 +315,7 @@ class OfflineDataset:
         _check_feature_map(feature_map, n_actions)
         if next_values is not None and not callable(next_values):
             raise TypeError("next_values must be callable: next_values(next_states) -> (n, A)")
-        act = np.asarray(actions)
+        act = as_array(actions, "actions")
         if act.ndim != 2:
             raise ValueError(f"actions must have shape (K, H), got {act.shape}")
         if not np.issubdtype(act.dtype, np.integer):
@@ -323,7 +323,7 @@ class OfflineDataset:
         K, H = act.shape
         if K == 0 or H == 0:
             raise ValueError(f"actions must have K >= 1 and H >= 1, got {act.shape}")
-        obs, nobs = np.asarray(states), np.asarray(next_states)
+        obs, nobs = as_array(states, "states"), as_array(next_states, "next_states")
         if obs.shape[:2] != (K, H) or nobs.shape[:2] != (K, H):
             raise ValueError(
                 f"states and next_states must start with (K, H) = {(K, H)} like actions, got "
@@ -334,6 +334,8 @@ class OfflineDataset:
         if not all(np.isfinite(r[h]).all() for h in range(H)):
             raise ValueError("rewards contains NaN or infinite entries; clean the data first")
         sm = [_st.ArrayField(_st.layout_step_major(x)) for x in (obs, act, nobs)]
+        for name, field in (("states", sm[0]), ("next_states", sm[2])):
+            _check_finite_observations(field, name, H)
         for h in range(H):
             for _, _, rows in sm[1].chunks(h, _st.CHUNK):
                 if rows.size and (rows.min() < 0 or rows.max() >= n_actions):
@@ -859,6 +861,21 @@ def _check_extras(K, H, A, _owned=(), **given) -> dict:
         # A private, read-only copy: the caller's array is neither shared nor mutable here.
         extras[name] = _readonly(arr if owned else np.array(arr, copy=True))
     return extras
+
+
+def _check_finite_observations(field, name: str, horizon: int) -> None:
+    """Refuse NaN or infinite observations (a step at a time: memory maps stay unread but
+    for one chunk), naming the step and trajectory: a feature map would turn them into
+    features the fit cannot use, and the error would blame the map."""
+    if field.dtype.kind != "f":
+        return
+    for h in range(horizon):
+        for s, _, rows in field.chunks(h, _st.CHUNK):
+            bad = ~np.isfinite(rows)
+            if bad.any():
+                k = s + int(np.argwhere(bad)[0][0])
+                raise ValueError(f"{name} holds a non-finite value at step {h}, trajectory {k} "
+                                 f"({name}[{k}, {h}]): clean the observations first")
 
 
 def _readonly(a):

@@ -168,6 +168,10 @@ def check_dtype(path, name, dtype, kinds="", exact=None) -> None:
                          "damaged")
 
 
+#: Fields whose first axis is the step (their errors name it).
+STEP_MAJOR = ("gram", "phi_sums", "rewards", "phi", "next_phi", "next_index", "next_values")
+
+
 def whole_field(path: Path, mf: dict, name: str, shape=None, kinds="f", dtype=None,
                 finite=True, what: str = "") -> np.ndarray:
     """The field ``name`` read whole and checked: ``shape`` (a tuple, None for any) of
@@ -182,9 +186,11 @@ def whole_field(path: Path, mf: dict, name: str, shape=None, kinds="f", dtype=No
     if finite and arr.dtype.kind == "f":
         bad = np.isinf(arr) if finite == "no-inf" else ~np.isfinite(arr)
         if bad.any():
-            first = tuple(int(i) for i in np.argwhere(bad)[0])
+            first = [int(i) for i in np.argwhere(bad)[0]]
+            step = f", step {first[0]}" if name in STEP_MAJOR else ""
             raise file_error(file, name, f"holds {int(bad.sum())} non-finite entries (the "
-                             f"first at index {first}); the dataset is damaged")
+                             f"first, {float(arr[tuple(first)])!r}, at index {first}{step}); "
+                             "the dataset is damaged: write the dataset again from its source")
     return arr
 
 
