@@ -101,16 +101,18 @@ class DRVIL(LinearEstimator):
     lies in ``[0, m]``, ``m`` the plain ridge estimate of ``E_i V_{h+1}`` clipped to
     ``[0, (H - h - 1) r_max]`` (the ball contains ``mu0``, so the robust value never exceeds
     it; the estimate of ``E_i[e^{-V/b}]`` is floored at ``e^{-m/b}``, Jensen's bound, instead
-    of Ma et al.'s ``e^{-H/b}``); it is non-increasing in ``rho`` and tends to ``m`` as
-    ``rho -> 0+`` (``rho = 0`` gives the plain estimate, :class:`~r2pvi.PEVI`'s, which is
-    ``m`` whenever it lies in the value range), and a radius so large that no ``b >= b_min``
+    of Ma et al.'s ``e^{-H/b}``); it is non-increasing in ``rho``, ``rho_{h,i} = 0`` gives
+    ``m``, :class:`~r2pvi.PEVI`'s projected estimate (the limit ``rho -> 0+``: continuous at
+    0), and a radius so large that no ``b >= b_min``
     gives a value above 0 (``rho = 1e10``) gives 0, the least value.
 
     Parameters
     ----------
     rho : float, array (d,) or array (H, d)
         Radii of the KL balls (>= 0): one for all, one per factor, or one per step and factor.
-        ``rho_{h,i} = 0`` uses the plain ridge estimate for that factor.
+        ``rho_{h,i} = 0`` uses PEVI's estimate for that factor (the plain ridge estimate
+        projected onto the value range): ``rho = 0`` is PEVI with the same ``beta``,
+        ``gamma`` and ``penalty``.
     beta : float, default 1.0
         Scale of the pessimism penalty (>= 0).
     gamma : float, default 1.0
