@@ -105,8 +105,9 @@ class FittedModel:
         fit so that acting never factors a matrix. None when the penalty does not need it.
         With ``time_homogeneous`` every entry is the same object.
     next_state_values : (H, n) ``V_{h+1}`` at the sampled next states (0 at ``h = H-1``)
-    value_moments : (H, d, 2) ``E_h([V_{h+1}, V_{h+1}^2])``, the ridge estimates of the first
-        two moments of the next-step value under step h's operator (variance-aware variants)
+    value_moments : (H, d, 2) ``E_h([U, U^2])``, ``U = V_{h+1} / r_max``: the ridge estimates
+        of the first two moments of the next-step value, in units of ``r_max`` (finite for any
+        finite ``r_max``), under step h's operator (variance-aware variants)
     """
 
     weights: np.ndarray
@@ -528,8 +529,8 @@ def backward_induction(
         Factorization of each Gram matrix (see :class:`~r2pvi.duals.GramFactor`); "auto"
         takes the cheaper from the shapes.
     value_moments : bool, default False
-        Also store ``E_h([V_{h+1}, V_{h+1}^2])`` (``FittedModel.value_moments``), which the
-        variance-aware variants' first pass needs; two more regressions per step.
+        Also store ``E_h([U, U^2])``, ``U = V_{h+1} / r_max`` (``FittedModel.value_moments``),
+        which the variance-aware variants' first pass needs; two more regressions per step.
     """
     H, d = dataset.horizon, dataset.n_features
     # The step-major data: in memory, on disk or in Dask arrays (None: a dataset that only
@@ -592,11 +593,12 @@ def backward_induction(
                 else:  # written in place: no K-sized temporary
                     v_next = source.next_state_values(h, qmax, out=next_state_values[h])
                 if value_moments:  # only the variance-aware variants need them
+                    unit_v = v_next / r_max  # in units of r_max: U^2 never overflows
                     if chunked:
-                        both = np.stack([v_next, v_next * v_next], axis=1)
+                        both = np.stack([unit_v, unit_v * unit_v], axis=1)
                         E.include(both)
                     else:
-                        moments[h] = np.stack([E(v_next), E(v_next * v_next)], axis=1)
+                        moments[h] = np.stack([E(unit_v), E(unit_v * unit_v)], axis=1)
                 w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
                 if value_moments and chunked:
                     moments[h] = E(both)

@@ -53,7 +53,8 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
     clipped to ``[0, (H - h - 1) r_max]`` (the ball contains ``mu0``, so the robust value
     never exceeds it); it is non-increasing in ``rho``, ``rho_{h,i} = 0`` gives ``m``,
     :class:`~r2pvi.PEVI`'s projected estimate (the limit ``rho -> 0+``: continuous at 0), and
-    any radius past saturation (``rho = 1e16``) gives ``V_min`` exactly. VA-DRPVI has the same guarantees on its weighted operator.
+    any radius past saturation (``rho = 1e16``) gives ``V_min`` exactly. VA-DRPVI has the
+    same guarantees on its weighted operator.
 
     Parameters
     ----------

@@ -9,10 +9,10 @@ import numpy as np
 
 from .._validation import check_choice
 from ..duals.constrained import kl_constrained
+from ..duals.ranges import value_extent, value_range, value_unit
 from ..engine import StepContext, StepRule
 from ._params import check_radius
 from .base import LinearEstimator
-from .drpvi import step_value_range
 
 __all__ = ["DRVIL", "KLBallRule", "auto_b_min"]
 
@@ -54,11 +54,20 @@ class KLBallRule(StepRule):
         self.form = form
 
     def __call__(self, E, v, ctx: StepContext):
-        b_min = auto_b_min(v, E.n_points) if self.b_min == "auto" else self.b_min
+        # in the values' unit (value_unit, a power of two: exact): the search over b has
+        # tolerances relative to 1 and squares b
+        unit = value_unit(value_extent(v))
+        u = v if unit == 1.0 else v / unit
+        if self.b_min == "auto":
+            b_min = auto_b_min(u, E.n_points)
+        else:
+            # (a b_min below 2^-1000 value units acts as that: 1 / b stays finite)
+            b_min = None if self.b_min is None else max(self.b_min / unit, 2.0**-1000)
         rho = self.rho[ctx.h] if ctx.dims is None else self.rho[ctx.h][ctx.dims]
         ma = self.form == "ma"
-        return kl_constrained(E, v, rho, v_range=step_value_range(v, ctx),
-                              centered=ma, normalized=not ma, b_min=b_min)
+        w = kl_constrained(E, u, rho, v_range=value_range(u, ctx.next_value_bound / unit),
+                           centered=ma, normalized=not ma, b_min=b_min)
+        return w if unit == 1.0 else w * unit
 
     def factor_params(self, h):
         return self.rho[h]

@@ -104,7 +104,8 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     upper = upper_v if v_max is None else float(v_max)
     # one K-sized work array (reused across steps: no page faults), transformed in place
     z = np.subtract(v, shift, out=buffer("kl.z", v.shape))
-    z *= -1.0 / lam
+    with np.errstate(over="ignore"):  # lam far below the values: -inf, e^z = 0 (exact)
+        z *= -1.0 / lam
     if form == "paper":
         with np.errstate(under="ignore"):
             ex = np.exp(z, out=z)
@@ -194,7 +195,9 @@ def _log_moment(E, v, shift, lam, u):
         # only factors with weight need the exact log-sum-exp.
         live = np.any(rows != 0.0, axis=1)
         if live.any():
-            lse, sign = logsumexp(-(v - shift) / lam, b=rows[live], axis=1, return_sign=True)
+            with np.errstate(over="ignore"):  # -inf: no mass there (exact)
+                lse, sign = logsumexp(-(v - shift) / lam, b=rows[live], axis=1,
+                                      return_sign=True)
             log_u[dims[live]] = np.where(sign > 0, lse, -np.inf)
     return log_u
 
