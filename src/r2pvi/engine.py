@@ -337,6 +337,16 @@ class ChunkedRidgeExpectation(RidgeExpectation):
             self._want_sums = True  # accumulated with E(y) if not known
         return self(y), self.total_weights()
 
+    def pair_with_total_weights(self, y1: np.ndarray, y2: np.ndarray):
+        """``(E(y1), E(y2), E(1))`` in one read of the step's features (``E(1)`` from the
+        column sums: known, or accumulated in the same read)."""
+        if self._rows is not None:
+            return super().pair_with_total_weights(y1, y2)
+        if not any(y2 is p for p in self._pending):
+            self.include(y2)
+        e1, s = self.with_total_weights(y1)
+        return e1, self(y2), s
+
     def include(self, y: np.ndarray) -> None:
         """Register ``y (n,)`` or ``(n, m)``: its product ``Phi^T W y`` is accumulated with
         the next pass, and ``E(y)`` (the same array object) then costs no read."""
