@@ -78,7 +78,8 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         Reward bound: ``Q_h`` is clipped to ``[0, (H - h) r_max]``.
     variance_aware : bool, default False
         VA-DRPVI (Liu & Xu 2024): a first, unweighted DRPVI pass gives
-        ``V_{h+1}``, whose estimated conditional variance weights a second pass
+        ``V_{h+1}``, whose estimated conditional variance (in units of ``r_max^2``, floored
+        at 1; :func:`~r2pvi.algorithms._variance.variance_weights`) weights a second pass
         (weighted Gram matrix, targets and penalty).
     time_homogeneous : bool, default False
         Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the

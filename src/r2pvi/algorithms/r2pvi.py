@@ -162,8 +162,10 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         ``V - min V`` to that range.
     variance_aware : bool, default False
         VA-R2PVI-TV (TV only): a first, unweighted pass gives ``V_{h+1}``, whose conditional
-        variance ``sigma_h^2 = max{1, [phi^T z2]_[0,H^2] - ([phi^T z1]_[0,H])^2}`` weights a
-        second pass (weighted Gram matrix, targets and penalty); see
+        variance ``sigma_h^2 = max{1, [phi^T z2]_[0,H^2] - ([phi^T z1]_[0,H])^2}``, in units
+        of ``r_max`` (``z1``, ``z2`` the ridge estimates of ``V / r_max`` and its square: the
+        paper's formula, whose rewards lie in ``[0, 1]``), weights a second pass (weighted
+        Gram matrix, targets and penalty); see
         :func:`~r2pvi.algorithms._variance.variance_weights`.
     delta : float in (0, 1), default 0.05
         Confidence of ``beta="theory"`` (the theorem's bound holds with probability at least
