@@ -826,8 +826,9 @@ class RidgeExpectation(ExpectationOperator):
         """``(E(y1), E(y2), E(1))``: for dense unweighted primal rows one product of the
         stacked vectors (and a row of ones while ``E(1)`` is unknown) with ``Phi``, about the
         cost of one vector's (the rows are read once)."""
-        if not (self.primal_dense and self.weights is None):
-            return super().pair_with_total_weights(y1, y2)
+        if not (self.primal_dense and self.weights is None):  # one regression of both
+            both = self(np.stack([y1, y2], axis=1))
+            return both[:, 0].copy(), both[:, 1].copy(), self.total_weights()
         ones = getattr(self, "_total", None) is None
         ys = buffer("ridge.pair", (2 + ones, self.n_points))
         ys[0], ys[1] = y1, y2
