@@ -9,7 +9,9 @@ scalar or one per factor), and returns the d dual values ``w (d,)``. With a
 :class:`~r2pvi.duals.FactorExpectation` they are the exact robust expectations.
 
 A radius ``rho_i = 0`` makes the ball ``{mu0_i}``: the result is then the plain expectation
-``E_i(v)``, never a conservative approximation of it.
+``E_i(v)``, never a conservative approximation of it, projected onto the known range of the
+values ``v_range`` when one is given (as :class:`~r2pvi.PEVI` projects its estimate): the limit
+of the result as ``rho_i -> 0+``, so the result is continuous at ``rho_i = 0``.
 """
 
 from __future__ import annotations
@@ -70,10 +72,12 @@ def tv_constrained(
     ``v_range``), and it is at least ``V_min``. With ``m_i = clip(E_i(v), lo, hi)``
     (``v_range = (lo, hi)``, unbounded when None), the result for ``rho_i > 0`` is
     ``min(max(dual_i, max(V_min, lo)), m_i)``: non-increasing in ``rho_i`` and tending to
-    ``m_i`` as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``E_i(v)`` (the non-robust
-    estimate, equal to the limit whenever it lies in ``v_range``). A radius ``rho_i >= 1``
+    ``m_i`` as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``m_i`` (the non-robust
+    estimate projected onto ``v_range``, :class:`~r2pvi.PEVI`'s). A radius ``rho_i >= 1``
     makes the ball hold every distribution, whatever ``mu0_i``: the result is then
-    ``min(V_min, m_i)``, exactly (a ridge row's dual would give ``V_min E_i(1)``).
+    ``min(V_min, m_i)``, exactly (a ridge row's dual would give ``V_min E_i(1)``). A
+    ``v_min`` below ``lo`` (a known state value under the range) lowers the results' lower
+    end to it; ``m_i`` keeps ``v_range``.
 
     Parameters
     ----------
@@ -117,7 +121,7 @@ def tv_constrained(
     floor = lowest if v_min is None else min(float(v_min), lowest)
     y = v - floor  # >= 0, and exactly 0 at the lowest point when floor == min(v)
     if not np.any(rho > 0):
-        return E(v)
+        return np.clip(E(v), lo, hi)  # rho = 0: the plain estimate, projected
     if method == "auto":
         method = "blockwise" if v.size >= 512 else "dense"
     with np.errstate(over="ignore", invalid="ignore"):  # rho alpha may overflow to inf
@@ -137,9 +141,10 @@ def tv_constrained(
     # A radius >= 1 allows every distribution, whatever mu0: the least value, exactly (the
     # ridge dual there is V_min E_i(1), biased by the row sum).
     best = np.where(rho >= 1.0, floor, best)
-    lower = max(floor, lo)
+    # the least value; a v_min given below the range's lower end is a known state value
+    lower = floor if v_min is not None and floor < lo else max(floor, lo)
     out = np.minimum(np.maximum(best, lower), cap)
-    return np.where(rho > 0, out, plain)  # rho_i = 0: exactly the plain expectation
+    return np.where(rho > 0, out, cap)  # rho_i = 0: the plain estimate, projected (the limit)
 
 
 def _value_range(v_range) -> tuple[float, float]:
@@ -257,8 +262,8 @@ def kl_constrained(
     lo, hi)``, the result lies in ``[min(lower_i, m_i), m_i]``, ``lower_i = lo`` for a
     ridge operator and the smallest value on the factor's support (at least ``lo``) for a
     distribution, for ``rho_i > 0``; it is non-increasing in ``rho_i`` and tends to ``m_i``
-    as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``E_i(v)`` (the non-robust estimate,
-    equal to the limit whenever it lies in ``v_range``). For a
+    as ``rho_i -> 0+``; ``rho_i = 0`` gives exactly ``m_i`` (the non-robust estimate
+    projected onto ``v_range``, :class:`~r2pvi.PEVI`'s). For a
     distribution, a radius ``rho_i >= log(1 / mu0_i(S_min))`` (``S_min``: where V is
     smallest on the support) makes the ball hold the point mass there: the result is that
     minimum, exactly.
@@ -312,7 +317,7 @@ def kl_constrained(
     lo, hi = _value_range(v_range)
     dims = np.flatnonzero(rho > 0)
     if dims.size == 0:
-        return E(v)
+        return np.clip(E(v), lo, hi)  # rho = 0: the plain estimate, projected
     if b_min is not None and not (np.isfinite(b_min) and b_min > 0):
         raise ValueError(f"b_min must be a positive number or None, got {b_min!r}")
     if centered and normalized:
@@ -326,7 +331,7 @@ def kl_constrained(
     best = prob.solve(b_min, xtol, max_iter)
     if prob.scaled:  # normalized ridge rows: s_i times the dual per unit of row mass
         best = np.where(prob.live, best * prob.norm, cap[dims])
-    out = plain.copy()  # rho_i = 0: exactly the plain expectation
+    out = cap.copy()  # rho_i = 0: the plain estimate, projected (the limit rho_i -> 0+)
     # Jensen's floor keeps every objective value <= cap - b rho; the min only absorbs rounding.
     # The lower end: every expectation of V is at least the least value (for a distribution,
     # the minimum on its support, which a saturated ball attains exactly).

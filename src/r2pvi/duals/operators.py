@@ -82,6 +82,13 @@ class ExpectationOperator:
         matrix, so ``E(1)`` costs a ``d x d`` solve and no pass over the points)."""
         return self(y), self.total_weights()
 
+    def pair_with_total_weights(self, y1: np.ndarray, y2: np.ndarray):
+        """``(E(y1), E(y2), E(1))`` for two vectors ``(n,)``, in one pass over the points where
+        the operator can (a ridge operator: one product of the stacked vectors, with the
+        column sums when they are not known)."""
+        e1, e2 = self.apply_pair(y1, y2)
+        return e1, e2, self.total_weights()
+
     @property
     def matrix(self) -> np.ndarray:
         """The full (d, n) weight matrix (computed once, then cached)."""
@@ -814,6 +821,25 @@ class RidgeExpectation(ExpectationOperator):
             f2 += y2[s:s + _PAIR_CHUNK] @ rows
         linv = self.factor.linv
         return linv.T @ (linv @ f1), linv.T @ (linv @ f2)
+
+    def pair_with_total_weights(self, y1: np.ndarray, y2: np.ndarray):
+        """``(E(y1), E(y2), E(1))``: for dense unweighted primal rows one product of the
+        stacked vectors (and a row of ones while ``E(1)`` is unknown) with ``Phi``, about the
+        cost of one vector's (the rows are read once)."""
+        if not (self.primal_dense and self.weights is None):  # one regression of both
+            both = self(np.stack([y1, y2], axis=1))
+            return both[:, 0].copy(), both[:, 1].copy(), self.total_weights()
+        ones = getattr(self, "_total", None) is None
+        ys = buffer("ridge.pair", (2 + ones, self.n_points))
+        ys[0], ys[1] = y1, y2
+        if ones:
+            ys[2] = 1.0
+        sums = ys @ self.phi
+        linv = self.factor.linv
+        out = linv.T @ (linv @ sums.T)
+        if ones:
+            self._total = out[:, 2].copy()
+        return out[:, 0].copy(), out[:, 1].copy(), self._total.copy()
 
     def total_weights(self) -> np.ndarray:
         """``E(1) = Lambda^{-1} Phi^T W 1`` (computed once per operator): for dense primal

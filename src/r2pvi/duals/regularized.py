@@ -77,14 +77,25 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
 
     ``v_max`` is the upper bound on V (the floor ``exp(-V_max/lam)`` of the paper's form, a cap
     ``w_i <= V_max`` in both forms); None takes the maximum of ``v``. In the normalized form a
-    factor whose estimate exceeds ``s_i max v`` (what a distribution over the sampled values
-    can give: a tiny or non-positive moment from signed ridge weights, where the formula tends
-    to ``+inf``) is held at the larger of ``s_i max v`` and the plain estimate ``E_i(v)``,
-    continuously, instead of the step's bound ``V_max`` (the paper's floor
-    ``exp(-V_max/lam)``). A cap at ``E_i(v)`` everywhere (the exact dual never exceeds it)
-    would cost a second regression per step, 6-8% of a fit; this one costs it only in the
-    steps where some factor exceeds ``s_i max v``. ``extent``: ``(min v, max v)`` when
-    already known (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``.
+    ridge operator's estimate is capped at the plain estimate ``E_i(v)``, its ``lam -> inf``
+    limit, which the exact dual never exceeds: with signed ridge weights the formula can pass
+    it, and a tiny or non-positive moment (a negative weight at the least values) makes it
+    tend to ``+inf``, where the cap gives ``E_i(v)`` (continuously). ``E_i(v)`` comes from the
+    moment's own pass (one product of the stacked vectors,
+    :meth:`~r2pvi.duals.ExpectationOperator.pair_with_total_weights`). Distributions are not
+    capped (their dual is at most ``E V``). ``extent``: ``(min v, max v)`` when already known
+    (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``.
+
+    Monotonicity in ``lam``: for a distribution, and for a ridge factor whose weights are all
+    non-negative (its normalized weights are a distribution), the estimate is the exact dual
+    (times ``s_i``), non-decreasing in ``lam``. With signed weights it need not be: the
+    derivative of ``-lam log E_p[e^{-y/lam}]`` in ``lam`` is ``sum_j p_j r_j log r_j`` with
+    ``r_j = e^{-y_j/lam} / E_p[e^{-y/lam}] > 0`` and ``sum_j p_j r_j = 1``, which is
+    ``KL >= 0`` for ``p >= 0`` (Jensen) and can be negative when some ``p_j < 0``; a factor
+    with negative weight at the least values has a pole (the moment crosses 0) and, above it,
+    a dip below its ``lam -> inf`` limit. Making the estimate monotone would take its values
+    at every larger ``lam`` (the running minimum over ``[lam, inf)``), many regressions per
+    step; see docs/numerical-guarantees.md.
     Computed in the log domain, shifted by the minimum value, so it is finite and exact for
     ``lam`` from 1e-3 to 1e3 and beyond; factors whose shifted estimate underflows are
     recomputed by a sign-aware log-sum-exp over their explicit weights.
@@ -104,7 +115,8 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     upper = upper_v if v_max is None else float(v_max)
     # one K-sized work array (reused across steps: no page faults), transformed in place
     z = np.subtract(v, shift, out=buffer("kl.z", v.shape))
-    z *= -1.0 / lam
+    with np.errstate(over="ignore"):  # lam far below the values: -inf, e^z = 0 (exact)
+        z *= -1.0 / lam
     if form == "paper":
         with np.errstate(under="ignore"):
             ex = np.exp(z, out=z)
@@ -128,9 +140,19 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     # two-regression one (u and um both regressed) under this bound.
     # (From 64 spreads on, every z >= -1/64, so e^z > 1/2 and expm1 applies everywhere.)
     spread = upper_v - shift
+    # Ridge weights (signed): the plain estimate E(v) too, in the same pass as the moment (one
+    # product of the stacked vectors): the cap below. Distributions never exceed E V.
+    ridge = not E.nonnegative
+
+    def regress(y):
+        if ridge:
+            return E.pair_with_total_weights(y, v)
+        moment, total = E.with_total_weights(y)
+        return moment, None, total
+
     if lam <= _CENTER_FROM * spread:
         with np.errstate(under="ignore"):
-            u, s = E.with_total_weights(np.exp(z, out=z))
+            u, plain, s = regress(np.exp(z, out=z))
         um = u - s
     else:
         if lam > _EXPM1_FROM * spread:
@@ -138,7 +160,7 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
         else:
             np.exp(z, out=z)
             z -= 1.0
-        um, s = E.with_total_weights(z)
+        um, plain, s = regress(z)
         u = um + s
     if s.min() > 0.0 and u.min() >= _TINY:  # the usual case, with d-sized operations only
         # log(u/s) = log1p(um/s): the accurate form when u/s is not small; log(u) - log(s)
@@ -150,34 +172,23 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
             with np.errstate(divide="ignore", invalid="ignore"):
                 log_norm = np.where(near_one, np.log1p(um / s), np.log(u) - np.log(s))
         w = s * (shift - lam * log_norm)
-        return np.minimum(_tame(E, v, w, s * upper_v), upper, out=w)
-    live = s > 0.0
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        safe_s = np.where(live, s, 1.0)
-        log_norm = _log_moment(E, v, shift, lam, u) - np.log(safe_s)
-        # log(u/s) = log1p(um/s): the accurate form when u/s is not small
-        near_one = u > 0.5 * safe_s
-        log_norm[near_one] = np.log1p(um[near_one] / safe_s[near_one])
-        w = s * (shift - lam * log_norm)  # +inf where the moment is <= 0
-    plain = None
-    if not live.all():  # no positive total weight: nothing to normalize, the plain estimate
-        plain = E(v)
-        w = np.where(live, w, plain)
-    return np.minimum(_tame(E, v, w, np.where(live, s * upper_v, np.inf), plain), upper)
-
-
-def _tame(E, v, w, top, plain=None):
-    """``w_i`` where it is at most ``top_i = s_i max v`` (what a distribution over the sampled
-    values can give), else ``min(w_i, max(E_i(v), top_i))``: an estimate beyond every sampled
-    value (a tiny or non-positive moment from signed ridge weights, ``w -> +inf``) is held at
-    the larger of the plain estimate and ``top``. Continuous in ``w`` (at ``w = top`` both give
-    ``top``), keeps the ``lam -> inf`` limit ``E_i(v)``, and costs the regression of ``v`` only
-    in the steps where some factor exceeds ``top`` (``plain``: ``E(v)`` if already formed)."""
-    over = ~(w <= top)  # NaN too
-    if not over.any():
-        return w
-    plain = E(v) if plain is None else plain
-    return np.where(over, np.minimum(w, np.maximum(plain, top)), w)
+    else:
+        live = s > 0.0
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            safe_s = np.where(live, s, 1.0)
+            log_norm = _log_moment(E, v, shift, lam, u) - np.log(safe_s)
+            # log(u/s) = log1p(um/s): the accurate form when u/s is not small
+            near_one = u > 0.5 * safe_s
+            log_norm[near_one] = np.log1p(um[near_one] / safe_s[near_one])
+            w = s * (shift - lam * log_norm)  # +inf where the moment is <= 0
+        if not live.all():  # no positive total weight: nothing to normalize, the plain estimate
+            plain = E(v) if plain is None else plain
+            w = np.where(live, w, plain)
+    if plain is not None:
+        # At most the plain estimate, the lam -> inf limit (the exact dual never exceeds E V):
+        # where the moment is <= 0 (+inf above) the plain estimate itself.
+        np.minimum(w, plain, out=w)
+    return np.minimum(w, upper, out=w)
 
 
 def _log_moment(E, v, shift, lam, u):
@@ -194,7 +205,9 @@ def _log_moment(E, v, shift, lam, u):
         # only factors with weight need the exact log-sum-exp.
         live = np.any(rows != 0.0, axis=1)
         if live.any():
-            lse, sign = logsumexp(-(v - shift) / lam, b=rows[live], axis=1, return_sign=True)
+            with np.errstate(over="ignore"):  # -inf: no mass there (exact)
+                lse, sign = logsumexp(-(v - shift) / lam, b=rows[live], axis=1,
+                                      return_sign=True)
             log_u[dims[live]] = np.where(sign > 0, lse, -np.inf)
     return log_u
 
