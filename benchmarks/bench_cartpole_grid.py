@@ -45,7 +45,7 @@ def timed(fn, repeats):
 
 
 def learned_policy(n_episodes, behaviour):
-    from r2pvi.envs.noisy_cartpole import NoisyCartPoleEnv
+    from r2pvi.envs.noisy_cartpole_gym import NoisyCartPoleEnv
 
     eps = collect_episodes(NoisyCartPoleEnv(), behaviour, n_episodes, seed=1, n_envs=50)
     fmap = cross_actions(NormalizedRBF(n_centers=3).fit(episode_observations(eps)), 2)
@@ -59,7 +59,7 @@ def learned_policy(n_episodes, behaviour):
 def per_point_reference(policy, n_episodes):
     """The grid through evaluate_policy, one Gymnasium vector env per point."""
     from r2pvi.envs.cartpole_grid import perturbation_grid
-    from r2pvi.envs.noisy_cartpole import NoisyCartPoleEnv
+    from r2pvi.envs.noisy_cartpole_gym import NoisyCartPoleEnv
     from r2pvi.evaluation import episode_returns
 
     names, _, values = perturbation_grid()

@@ -184,7 +184,7 @@ def test_single_env_passes_gymnasium_checks_and_takes_parameters_like_perturbed_
 
     import r2pvi.envs.gym  # noqa: F401  (registers r2pvi/NoisyCartPole-v0)
     from r2pvi.envs import collect_episodes
-    from r2pvi.envs.noisy_cartpole import NoisyCartPoleEnv
+    from r2pvi.envs.noisy_cartpole_gym import NoisyCartPoleEnv
     from r2pvi.envs.perturbations import PerturbedEnv
 
     env = NoisyCartPoleEnv(length=1.0)
@@ -242,7 +242,7 @@ def test_grid_points_see_the_same_initial_states_and_noise_draws():
 
 def test_grid_returns_are_evaluate_policy_returns_of_the_single_env_at_each_point():
     pytest.importorskip("gymnasium")
-    from r2pvi.envs.noisy_cartpole import NoisyCartPoleEnv
+    from r2pvi.envs.noisy_cartpole_gym import NoisyCartPoleEnv
     from r2pvi.evaluation import episode_returns
 
     behaviour = EpsilonGreedy(LQR, 0.3, 2)                       # stochastic: its rngs too
@@ -322,7 +322,7 @@ def test_bad_grids_episodes_and_actions_are_refused_by_name():
 
 def test_single_env_refuses_bad_parameters_by_name():
     pytest.importorskip("gymnasium")
-    from r2pvi.envs.noisy_cartpole import NoisyCartPoleEnv
+    from r2pvi.envs.noisy_cartpole_gym import NoisyCartPoleEnv
 
     with pytest.raises(ValueError, match="length"):
         NoisyCartPoleEnv(length=-1.0)

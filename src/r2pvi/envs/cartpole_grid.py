@@ -89,7 +89,7 @@ def perturbation_grid(grid=None, **base):
     return np.array(names), np.array(ps), np.array(values)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class GridEvaluation:
     """Returns of a policy on a test grid.
 

@@ -7,7 +7,7 @@ Importing this module registers the ids
 - ``r2pvi/HardInstance-v0`` (kwargs ``d, H, lam, epsilon, delta, xi``, ...),
 - ``r2pvi/AmericanPutOption-v0`` (kwargs ``p0, d, H, strike``, ...),
 - ``r2pvi/NoisyCartPole-v0`` (kwargs ``sigma, max_steps`` and CartPole's parameters: the
-  RFQI protocol, :mod:`r2pvi.envs.noisy_cartpole`),
+  RFQI protocol, :mod:`r2pvi.envs.noisy_cartpole_gym`),
 
 so ``gymnasium.make("r2pvi/SimulatedLinearMDP-v0")`` works after ``import r2pvi.envs.gym``
 (or in one line: ``gymnasium.make("r2pvi.envs.gym:r2pvi/SimulatedLinearMDP-v0")``).
@@ -300,7 +300,7 @@ def register_envs() -> None:
             gymnasium.register(id=env_id, entry_point=f"{__name__}:{entry}")
     if NOISY_CARTPOLE_ID not in gymnasium.registry:
         gymnasium.register(id=NOISY_CARTPOLE_ID,
-                           entry_point="r2pvi.envs.noisy_cartpole:NoisyCartPoleEnv")
+                           entry_point="r2pvi.envs.noisy_cartpole_gym:NoisyCartPoleEnv")
 
 
 if gymnasium is not None:

@@ -17,8 +17,8 @@ parameters (a whole test grid is one batch); :func:`cartpole_step` is its one Eu
 Episode ``e`` of a seed draws its initial state and its noise from its own
 ``numpy.random.Generator`` (4 uniforms, then 2 normals per step), so rows that run the
 same episode see the same initial state and noise whatever their parameters (common random
-numbers). ``NoisyCartPoleEnv`` (extra ``gym``, imported on first use) is the single
-Gymnasium environment with the same streams: ``reset(seed=s)`` runs the episode whose
+numbers). :class:`~r2pvi.envs.noisy_cartpole_gym.NoisyCartPoleEnv` (extra ``gym``) is the
+single Gymnasium environment with the same streams: ``reset(seed=s)`` runs the episode whose
 generator is ``numpy.random.default_rng(s)``. The test grid and its evaluation are in
 :mod:`r2pvi.envs.cartpole_grid`.
 
@@ -69,13 +69,6 @@ X_THRESHOLD = 2.4
 THETA_THRESHOLD = 12 * 2 * math.pi / 360  # Gymnasium's expression, bit for bit
 _POSITIVE = ("masscart", "masspole", "length", "tau")
 
-
-def __getattr__(name):  # the Gymnasium environment, imported only when asked for
-    if name == "NoisyCartPoleEnv":
-        from ._noisy_cartpole_gym import NoisyCartPoleEnv
-
-        return NoisyCartPoleEnv
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ---------------------------------------------------------------------- parameters

@@ -1,13 +1,16 @@
-"""``NoisyCartPoleEnv``: the noisy CartPole protocol as one Gymnasium environment.
+"""The noisy CartPole protocol (:mod:`r2pvi.envs.noisy_cartpole`) as one Gymnasium
+environment (extra ``gym``); registered as ``r2pvi/NoisyCartPole-v0`` by
+:mod:`r2pvi.envs.gym`.
 
-Imported by ``r2pvi.envs.noisy_cartpole.NoisyCartPoleEnv`` on first use (it needs the extra
-``gym``); registered as ``r2pvi/NoisyCartPole-v0`` by :mod:`r2pvi.envs.gym`.
+This module needs gymnasium; :class:`~r2pvi.envs.noisy_cartpole.NoisyCartPoleBatch` and
+:func:`~r2pvi.envs.evaluate_cartpole_grid` do not.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ._sampling import check_count
 from .noisy_cartpole import (
     MAX_STEPS,
     NOMINAL,
@@ -22,14 +25,20 @@ try:  # the optional extra
     import gymnasium
     from gymnasium.envs.classic_control.cartpole import CartPoleEnv
 except ImportError:  # pragma: no cover - exercised only without the extra
-    raise ImportError(
-        "NoisyCartPoleEnv needs gymnasium: pip install 'r2pvi[gym]' (the NumPy "
-        "NoisyCartPoleBatch and evaluate_cartpole_grid do not)"
-    ) from None
+    gymnasium = None
+    CartPoleEnv = object
 
 __all__ = ["NoisyCartPoleEnv"]
 
 _ACTION_NOISE = "action_noise"
+
+
+def _require_gymnasium():
+    if gymnasium is None:
+        raise ImportError(
+            "NoisyCartPoleEnv needs gymnasium: pip install 'r2pvi[gym]' (the NumPy "
+            "NoisyCartPoleBatch and evaluate_cartpole_grid do not)"
+        )
 
 
 class NoisyCartPoleEnv(CartPoleEnv):
@@ -59,7 +68,7 @@ class NoisyCartPoleEnv(CartPoleEnv):
 
     Examples
     --------
-    >>> from r2pvi.envs.noisy_cartpole import NoisyCartPoleEnv
+    >>> from r2pvi.envs.noisy_cartpole_gym import NoisyCartPoleEnv
     >>> env = NoisyCartPoleEnv(length=1.0)
     >>> obs, info = env.reset(seed=0, options={"gravity": 19.6})
     >>> env.get_params()["gravity"], env.get_params()["sigma"]
@@ -68,8 +77,7 @@ class NoisyCartPoleEnv(CartPoleEnv):
 
     def __init__(self, sigma: float = SIGMA, max_steps: int = MAX_STEPS,
                  render_mode: str | None = None, **params):
-        from ._sampling import check_count
-
+        _require_gymnasium()
         CartPoleEnv.__init__(self, render_mode=render_mode)
         self.max_steps = check_count(max_steps, "max_steps")
         high = np.full(4, np.finfo(np.float32).max, dtype=np.float32)
