@@ -5,6 +5,8 @@
 - :class:`SimulatedLinearMDP` — the paper's simulated linear MDP (Appendix A.1);
 - :class:`HardInstance` — the hard instances of the lower bound;
 - :class:`AmericanPutOption` — the simulated American put option (Appendix A.2).
+- :func:`evaluate_cartpole_grid` — the noisy CartPole test grid of RFQI (vectorized NumPy;
+  :mod:`r2pvi.envs.noisy_cartpole`).
 
 Each collects offline datasets exactly as the paper does (``env.collect``). Exact
 evaluation lives in :mod:`r2pvi.evaluation`. The Gymnasium adapters (:mod:`r2pvi.envs.gym`,
@@ -13,6 +15,7 @@ imported only when used.
 """
 
 from ._dataset import Trajectories
+from .cartpole_grid import GridEvaluation, evaluate_cartpole_grid
 from .collect import EpsilonGreedy, UniformPolicy, collect_episodes
 from .finite import FiniteLinearMDP
 from .hard_instance import HardInstance
@@ -33,4 +36,6 @@ __all__ = [
     "collect_episodes",
     "EpsilonGreedy",
     "UniformPolicy",
+    "evaluate_cartpole_grid",
+    "GridEvaluation",
 ]
