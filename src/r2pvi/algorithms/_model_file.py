@@ -9,8 +9,8 @@ import scipy.sparse as sp
 
 from .._io import file_array, file_error, load_npz
 from .._validation import check_choice, check_scalar, plain
+from ..duals._sparse_rows import _SparseProduct, _UsedFeaturesFactor
 from ..duals.fdivergence import get_divergence
-from ..duals.operators import _SparseProduct, _UsedFeaturesFactor
 from ..engine import FittedModel
 
 # Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors

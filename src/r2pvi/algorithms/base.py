@@ -18,7 +18,8 @@ from .._io import save_npz
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
-from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
+from ..duals._sparse_rows import _SparseProduct, _UsedFeaturesFactor
+from ..duals.gram import GramFactor, GramMatrixError
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 from ..storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
 from ._model_file import ELLIPTICAL_KINDS as _ELLIPTICAL_KINDS

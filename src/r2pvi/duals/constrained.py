@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from ._scratch import buffer
-from .operators import ExpectationOperator, FactorExpectation, RidgeExpectation
+from .operator import ExpectationOperator, FactorExpectation, RidgeExpectation
 from .piecewise import tv_ball_max
 
 __all__ = ["tv_constrained", "kl_constrained"]

@@ -25,8 +25,9 @@ from __future__ import annotations
 import numpy as np
 
 from ._scratch import buffer
-from .operators import BLOCK, ExpectationOperator, fine_blocks
+from .operator import ExpectationOperator
 from .ranges import clip
+from .sorting import BLOCK, fine_blocks
 
 __all__ = [
     "chi2_objective", "segments_max", "blockwise_max", "dense_max", "tv_ball_max", "BlockScan",

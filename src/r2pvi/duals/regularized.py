@@ -13,7 +13,7 @@ from scipy.special import logsumexp
 
 from ._scratch import buffer
 from .fdivergence import FDivergence
-from .operators import ExpectationOperator, FactorExpectation
+from .operator import ExpectationOperator, FactorExpectation
 from .piecewise import blockwise_max, dense_max
 from .ranges import value_extent
 
