@@ -12,10 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from r2pvi.duals import ExpectationOperator, RidgeExpectation, chi2_regularized, cholesky_gram
+from r2pvi.duals.blockscan import BlockScan, _running_sums
 from r2pvi.duals.piecewise import (
-    BlockScan,
     _chi2_block_bounds,
-    _running_sums,
     blockwise_max,
     chi2_objective,
     dense_max,

@@ -11,9 +11,10 @@ from .fdivergence import (
     cressie_read,
     get_divergence,
 )
+from .general_f import f_regularized
 from .gram import GramFactor, GramMatrixError, cholesky_gram, choose_form
 from .operator import ExpectationOperator, FactorExpectation, RidgeExpectation
-from .regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
+from .regularized import chi2_regularized, kl_regularized, tv_regularized
 from .sorting import TruncationCumulants
 
 __all__ = [

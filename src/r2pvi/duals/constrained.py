@@ -61,7 +61,7 @@ def tv_constrained(
     evaluates them all from the prefix sums of
     :meth:`~r2pvi.duals.ExpectationOperator.truncation_cumulants`; ``"blockwise"`` gives the
     same maximum by the branch and bound over blocks of sorted breakpoints shared with the
-    chi^2 dual (:class:`~r2pvi.duals.piecewise.BlockScan`); ``"auto"`` takes blockwise from
+    chi^2 dual (:class:`~r2pvi.duals.blockscan.BlockScan`); ``"auto"`` takes blockwise from
     512 values on. The values are shifted by ``V_min`` first, so that ``rho_i alpha`` never
     cancels against ``rho_i V_min``: any finite radius is exact (``rho = 1e16`` included).
 
