@@ -98,17 +98,19 @@ class _KLProblem(_KLMoments):
         self.cap = cap[self.dims] / self.norm
 
     def prepare(self, b_min):
-        """The grid of log b and its transformed values (:meth:`_grid_fill`), registered with
-        an operator that streams its points (``include``), so that the plain estimate's pass
-        reads them too."""
+        """The grid of log b and its transformed values (:meth:`_grid_fill`); returns the
+        plain estimate ``E(v)``, asked for with the grid's columns (``E.apply_pair``: one pass
+        over the points where the operator streams them)."""
         lo_b = b_min if b_min is not None else _B_FLOOR * self.scale
         hi_b = max(float(self.b_hi.max()), 4.0 * lo_b)
         tgrid = _log_grid(lo_b, hi_b, self.scale)
         state = self._grid_fill(np.exp(tgrid))
-        include = getattr(self.E, "include", None)
-        if state[0] is not None and include is not None:
-            include(state[0])
-        self._coarse = (tgrid, state)
+        if state[0] is None:
+            plain, moments = self.E(self.v), None
+        else:
+            plain, moments = self.E.apply_pair(self.v, state[0])
+        self._coarse = (tgrid, state, moments)
+        return plain
 
     def _set_row_sums(self, row_sums):
         """``norm``, ``c`` and ``base`` from the row sums ``E_i(1)`` (see ``__init__``)."""
@@ -131,8 +133,8 @@ class _KLProblem(_KLMoments):
     def solve(self, b_min, xtol, max_iter):
         if self._coarse is None:
             self.prepare(b_min)
-        tgrid, state = self._coarse
-        g, dg, d2g = self._grid_eval(np.exp(tgrid), state)
+        tgrid, state, moments = self._coarse
+        g, dg, d2g = self._grid_eval(np.exp(tgrid), state, moments)
         if self._cheb is not None:
             tgrid, g, dg, d2g = self._cheb_refine_grid(tgrid, g, dg, d2g)
         n_grid = tgrid.size

@@ -25,19 +25,6 @@ from ._kl_series import (
     _series_order,
 )
 from ._scratch import buffer
-from .operator import FactorExpectation, RidgeExpectation
-
-
-def _factorization(E):
-    """``(psi (n, p), R (d, p))`` with ``M = R psi^T`` for the operators whose structure is
-    known (ridge: ``R = Lambda^{-1}``, ``psi = W Phi``; factors: ``R = I``, ``psi = mu^T``)."""
-    if isinstance(E, RidgeExpectation) and E.primal_dense:  # dual form / sparse: E.matrix
-        psi = E.phi if E.weights is None else E.phi * E.weights[:, None]
-        linv = E.chol_inverse
-        return psi, linv.T @ linv
-    if isinstance(E, FactorExpectation):
-        return E.mu.T, np.eye(E.n_dims)
-    return None
 
 
 class _KLMoments:
@@ -100,12 +87,13 @@ class _KLMoments:
             np.multiply(ex, self.v, out=y[2, js:])
         return buf.T, plain, cheb, j_all, n_basis, ones
 
-    def _grid_eval(self, bs, state):
-        """:meth:`on_grid` from the columns of :meth:`_grid_fill` (one operator call)."""
+    def _grid_eval(self, bs, state, moments=None):
+        """:meth:`on_grid` from the columns of :meth:`_grid_fill` (one operator call), or from
+        their ``moments`` (the operator applied to them) when already known."""
         cols, plain, cheb, j_all, n_basis, ones = state
         out = [np.empty((self.dims.size, bs.size)) for _ in range(3)]
         if cols is not None:
-            mom = self.E(cols)[self.dims]
+            mom = (self.E(cols) if moments is None else moments)[self.dims]
             if ones:
                 self._set_row_sums(mom[:, -1].copy())
                 mom = mom[:, :-1]
@@ -254,7 +242,7 @@ class _KLMoments:
     def _weight_rows(self):
         """The operator's weight rows of the factors ``dims`` (computed once per call)."""
         if self.rows is None:
-            factors = _factorization(self.E)
+            factors = self.E.weight_factors()
             if factors is None:
                 full = self.E.matrix
                 self.rows = full if self.dims.size == full.shape[0] else full[self.dims]

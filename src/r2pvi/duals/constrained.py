@@ -310,8 +310,7 @@ def kl_constrained(
         raise ValueError("kl_constrained: choose centered=True (Ma et al.'s centered "
                          "regression) or normalized=True (the row-normalized weights), not both")
     prob = _KLProblem(E, v, rho, dims, lo, centered, normalized)
-    prob.prepare(b_min)  # the grid's columns, read with E(v) where the operator streams
-    plain = E(v)
+    plain = prob.prepare(b_min)  # E(v), with the grid's columns
     cap = np.clip(plain, lo, hi)
     prob.set_cap(cap)
     best = prob.solve(b_min, xtol, max_iter)

@@ -18,13 +18,11 @@ import scipy.sparse as sp
 from ._scratch import buffer
 from .gram import GramFactor, cholesky_gram  # noqa: F401 - cholesky_gram: the doctests
 from .sorting import (
-    BLOCK,
     SortedBlocks,
     TruncationCumulants,
-    _block_powers,
-    fine_blocks,
-    group_sums,
-    prefix_sums,
+    blocks_from_features,
+    blocks_from_weights,
+    cumulants_from_weights,
     sort_breakpoints,
 )
 
@@ -32,11 +30,34 @@ __all__ = ["ExpectationOperator", "RidgeExpectation", "FactorExpectation"]
 
 
 class ExpectationOperator:
-    """Base class: ``E(y) = M @ y`` for a (d, n) weight matrix ``M``.
+    """The interface every dual is written against: ``E(y) = M @ y``, ``M`` a (d, n) matrix
+    whose row i holds factor i's weights over the n points.
 
-    Subclasses provide :meth:`__call__` (cheap, for closed-form duals), :meth:`rows`
-    (explicit weights, for the piecewise duals that need cumulative sums over sorted
-    values) and ``nonnegative`` (True when every row is a probability distribution).
+    A subclass provides the first four members; the others have defaults built on them,
+    which a subclass overrides only to compute the same numbers faster (e.g. the ridge
+    operator in feature space, or an operator that streams its points reading them once
+    for all the columns a call asks for). The duals use these members only, and never ask
+    which kind of operator they hold:
+
+    - ``n_dims``, ``n_points``: d and n.
+    - ``nonnegative``: True when every weight is >= 0 (each row a distribution up to its
+      total weight, e.g. the true factors); the duals then use the exact-distribution forms.
+    - ``E(y)``: ``M @ y`` for ``y (n,)`` -> ``(d,)`` or ``(n, m)`` -> ``(d, m)``.
+    - :meth:`rows`: explicit weights ``M[dims]``, ``(len(dims), n)``.
+    - :attr:`matrix`: every row, computed once.
+    - :meth:`total_weights`: ``E(1)`` ``(d,)``, the row sums ``s_i``.
+    - :meth:`with_total_weights`, :meth:`apply_pair`, :meth:`pair_with_total_weights`:
+      several expectations at once, ``(E(y), E(1))``, ``(E(y1), E(y2))`` and ``(E(y1),
+      E(y2), E(1))``.
+    - :meth:`truncation_cumulants`: ``E([V]_alpha)`` and ``E([V]_alpha^2)`` on every segment
+      between sorted values (:class:`~r2pvi.duals.TruncationCumulants`).
+    - :meth:`sorted_blocks`: block sums of the weights in sorted order, for the branch and
+      bound of the piecewise duals (:class:`~r2pvi.duals.sorting.SortedBlocks`).
+    - :meth:`weight_factors`: ``(psi (n, p), R (d, p))`` with ``M = R psi^T`` when the operator
+      has that structure (rows formed by one product), else None.
+
+    The sorted views' defaults go through :meth:`sorted_weights` and :meth:`weight_columns`
+    (weight columns in sorted order), which a subclass may override instead.
     """
 
     n_dims: int
@@ -52,7 +73,8 @@ class ExpectationOperator:
         raise NotImplementedError
 
     def apply_pair(self, y1: np.ndarray, y2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(E(y1), E(y2))`` for two vectors ``(n,)`` (subclasses may share one pass)."""
+        """``(E(y1), E(y2))`` for ``y1``, ``y2`` each ``(n,)`` or ``(n, m)``, in one pass over
+        the points where the operator can."""
         return self(y1), self(y2)
 
     def total_weights(self) -> np.ndarray:
@@ -83,6 +105,11 @@ class ExpectationOperator:
             self._matrix_cache = cached
         return cached
 
+    def weight_factors(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(psi (n, p), R (d, p))`` with ``M = R psi^T``, so that rows are one product
+        ``R[dims] @ psi.T``; None when the operator has no such structure (then :meth:`rows`)."""
+        return None
+
     def weight_columns(self, src: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Write the weight columns ``M[:, src]`` into ``out (d, len(src))``; a negative
         index gives a zero column (padding, extra breakpoints)."""
@@ -106,28 +133,16 @@ class ExpectationOperator:
                       group: int = 1) -> SortedBlocks:
         """Block sums of the sorted weight columns, for branch and bound over breakpoints.
 
-        Returns :class:`SortedBlocks` with ``alphas (p,)`` as in :meth:`sorted_weights` and,
-        for every block of ``16 group`` consecutive sorted points (the last one may be
-        shorter), the sums of ``M``, ``M v`` and (with ``moments=3``) ``M v^2``, and an upper
-        bound on the sum of ``|M|`` (each ``(d, ceil(p / (16 group)))``), plus functions giving
-        the same sums on the blocks of 16 inside chosen (factor, block) pairs and the exact
-        weights of chosen (factor, block of 16) pairs. The arrays may live in reused work
-        buffers: valid until the next call in the same thread.
+        Returns :class:`~r2pvi.duals.sorting.SortedBlocks` with ``alphas (p,)`` as in
+        :meth:`sorted_weights` and, for every block of ``16 group`` consecutive sorted points
+        (the last one may be shorter), the sums of ``M``, ``M v`` and (with ``moments=3``)
+        ``M v^2``, and an upper bound on the sum of ``|M|`` (each ``(d, ceil(p / (16
+        group)))``), plus functions giving the same sums on the blocks of 16 inside chosen
+        (factor, block) pairs and the exact weights of chosen (factor, block of 16) pairs. The
+        arrays may live in reused work buffers: valid until the next call in the same thread.
         """
         alphas, weights, m = self.sorted_weights(v, breakpoints_extra)
-        d, p = weights.shape
-        w3 = weights.reshape(d, p // BLOCK, BLOCK)
-        powers = _block_powers(alphas, moments)  # (nb, moments, 16): 1, alpha, alpha^2
-        sums = np.einsum("dbk,bjk->jdb", w3, powers)  # (moments, d, nb)
-        sabs = np.abs(w3).sum(axis=2)
-
-        def fine_sums(rows, blocks):
-            r, idx = rows[:, None], fine_blocks(blocks, group, w3.shape[1])
-            return sums[:, r, idx], sabs[r, idx]
-
-        return SortedBlocks(alphas, m, group, group_sums(sums, group, axis=2),
-                            group_sums(sabs, group, axis=1), fine_sums,
-                            lambda rows, blk: w3[rows, blk])
+        return blocks_from_weights(alphas, weights, m, moments, group)
 
     def truncation_cumulants(self, v: np.ndarray, breakpoints_extra=()) -> TruncationCumulants:
         """Expectations of the truncated values ``[V]_alpha = min(V, alpha)`` for every alpha.
@@ -139,21 +154,9 @@ class ExpectationOperator:
         weight) that must separate segments. The arrays live in reused work buffers: they are
         valid until the next call in the same thread.
         """
-        d = self.n_dims
-        v = np.asarray(v, dtype=float)
-        m_all = v.size + len(breakpoints_extra)
-        padded = -(-m_all // BLOCK) * BLOCK
-        # M, M v and M v^2 (columns in sorted order) share one buffer, so that one blocked
-        # prefix sum (a GEMM, about twice as fast as np.cumsum here) serves all three.
-        stacked = buffer("cumulants.stacked", (3, d, padded))
-        alphas, weights, m = self.sorted_weights(v, breakpoints_extra)
-        stacked[0] = weights
-        np.multiply(stacked[0], alphas, out=stacked[1])
-        np.multiply(stacked[1], alphas, out=stacked[2])
-        sums = prefix_sums(stacked.reshape(3 * d, padded)).reshape(3, d, padded)
-        head, a, c = sums[0, :, :m], sums[1, :, :m], sums[2, :, :m]
-        b = np.subtract(head[:, -1:], head, out=head)
-        return TruncationCumulants(alphas[:m], a, b, c)
+        alphas, weights, m = self.sorted_weights(np.asarray(v, dtype=float), breakpoints_extra)
+        return cumulants_from_weights(alphas, weights, m)
+
 
 # Rows per chunk of RidgeExpectation.apply_pair: 1024 x 30 float64 = 240 kB, within L2.
 _PAIR_CHUNK = 1024
@@ -210,10 +213,10 @@ class RidgeExpectation(ExpectationOperator):
         return self.factor.regress(y)
 
     def apply_pair(self, y1: np.ndarray, y2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(E(y1), E(y2))``: for dense primal rows, both ``y^T Phi`` by chunks of rows that
-        stay in cache between the two products (one pass over ``Phi`` from memory instead of
-        two; measured 0.31 ms against 0.54 ms at n = 10,000, d = 30 from a cold cache)."""
-        if not (self.primal_dense and self.weights is None):
+        """``(E(y1), E(y2))``: for two vectors and dense unweighted primal rows, both ``y^T Phi``
+        by chunks of rows that stay in cache between the two products (one pass over ``Phi``
+        from memory instead of two)."""
+        if not (self.primal_dense and self.weights is None and np.ndim(y1) == np.ndim(y2) == 1):
             return self(y1), self(y2)
         phi = self.phi
         f1, f2 = np.zeros(self.n_dims), np.zeros(self.n_dims)
@@ -271,6 +274,15 @@ class RidgeExpectation(ExpectationOperator):
             raise AttributeError("chol_inverse exists for the primal form only")
         return self.factor.linv
 
+    def weight_factors(self):
+        """``(W Phi, Lambda^{-1})`` for dense rows in the primal form; else None (the dual form
+        and sparse rows give the weight matrix itself, :attr:`matrix`)."""
+        if not self.primal_dense:
+            return None
+        psi = self.phi if self.weights is None else self.phi * self.weights[:, None]
+        linv = self.chol_inverse
+        return psi, linv.T @ linv
+
     def rows(self, dims=None) -> np.ndarray:
         if dims is None:
             return self.factor.matrix()
@@ -315,53 +327,13 @@ class RidgeExpectation(ExpectationOperator):
                       group: int = 1) -> SortedBlocks:
         if not self.primal_dense:
             return super().sorted_blocks(v, breakpoints_extra, moments, group)
-        # M = Lambda^{-1} X^T is linear in the features: sum each block of 16 in feature space
-        # (one batched product), add those up by groups, and map only the groups' (nc, d)
-        # sums by Lambda^{-1}; the sums of blocks of 16 are mapped on demand, for the
-        # (factor, block) pairs a scan refines. |M| is bounded by |Lambda^{-1}| |X|; exact
-        # weights are formed only for the pairs asked for: row i of Lambda^{-1} times the
-        # block's 16 feature rows.
+        # in feature space: the block sums of the sorted rows, mapped by Lambda^{-1}
         alphas, xs, m = self._sorted_features(v, breakpoints_extra)
-        d = self.n_dims
-        x3 = xs.reshape(-1, BLOCK, d)
-        nb = x3.shape[0]
-        fsum = np.matmul(_block_powers(alphas, moments), x3,
-                         out=buffer("ridge.fsum", (nb, moments, d)))  # (nb, moments, d)
         linv = self.chol_inverse
-        gram_inv = linv.T @ linv  # Lambda^{-1} (d x d)
-        csum = group_sums(fsum, group)
-        # (moments, d, nc) C-ordered, so that the per-factor running sums over blocks read
-        # rows: Lambda^{-1} times the transposed sums, straight into a work buffer (BLAS reads
-        # the transposed operand; measured 4x faster than (nc * moments, d) @ Lambda^{-1}
-        # followed by a transposing copy).
-        sums = np.matmul(gram_inv, csum.transpose(1, 2, 0),
-                         out=buffer("ridge.sums", (moments, d, csum.shape[0])))
         if self.nonnegative_features is None:
             self.nonnegative_features = bool((self.phi >= 0).all())
         nonneg = self.nonnegative_features and self.weights is None
-        fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)  # (nb, d)
-        abs_inv = np.abs(gram_inv)
-        sabs = abs_inv @ (csum[:, 0] if nonneg else group_sums(fabs, group)).T
-
-        def fine(rows, blocks):
-            # Lambda^{-1} (and |Lambda^{-1}|) on the feature sums of the distinct blocks asked
-            # for only (U of them; a mask and its running count instead of np.unique's sort).
-            seen = np.zeros(csum.shape[0], dtype=bool)
-            seen[blocks] = True
-            ub = np.flatnonzero(seen)
-            inv = (np.cumsum(seen) - 1)[blocks]
-            idx = fine_blocks(ub, group, nb).ravel()  # (U group,)
-            mapped = np.empty((moments + 1, d, idx.size))
-            np.matmul(gram_inv, fsum[idx].transpose(1, 2, 0), out=mapped[:moments])
-            np.matmul(abs_inv, fabs[idx].T, out=mapped[moments])
-            out = mapped.reshape(moments + 1, d, ub.size, group)[
-                :, rows[:, None], inv[:, None], np.arange(group)]  # (moments + 1, P, group)
-            return out[:moments], out[moments]
-
-        def pairs(rows, blocks):
-            return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]  # (P, 16)
-
-        return SortedBlocks(alphas, m, group, sums, sabs, fine, pairs)
+        return blocks_from_features(alphas, xs, m, linv.T @ linv, nonneg, moments, group)
 
     def inverse_diagonal(self) -> np.ndarray:
         """``diag(Lambda^{-1})`` without forming the inverse (see :class:`GramFactor`)."""
@@ -400,3 +372,7 @@ class FactorExpectation(ExpectationOperator):
 
     def rows(self, dims=None) -> np.ndarray:
         return self.mu if dims is None else self.mu[np.atleast_1d(dims)]
+
+    def weight_factors(self):
+        """``(mu^T, I)``."""
+        return self.mu.T, np.eye(self.n_dims)

@@ -22,6 +22,9 @@ __all__ = [
     "fine_blocks",
     "group_sums",
     "TruncationCumulants",
+    "blocks_from_weights",
+    "blocks_from_features",
+    "cumulants_from_weights",
 ]
 
 BLOCK = 16
@@ -186,3 +189,85 @@ class TruncationCumulants:
 
     def __init__(self, alphas, a, b, c):
         self.alphas, self.a, self.b, self.c = alphas, a, b, c
+
+
+def blocks_from_weights(alphas, weights, m, moments: int = 3, group: int = 1) -> SortedBlocks:
+    """:class:`SortedBlocks` from the weight columns in sorted order ``weights (d, p)`` (see
+    :meth:`~r2pvi.duals.ExpectationOperator.sorted_blocks`)."""
+    d, p = weights.shape
+    w3 = weights.reshape(d, p // BLOCK, BLOCK)
+    powers = _block_powers(alphas, moments)  # (nb, moments, 16): 1, alpha, alpha^2
+    sums = np.einsum("dbk,bjk->jdb", w3, powers)  # (moments, d, nb)
+    sabs = np.abs(w3).sum(axis=2)
+
+    def fine_sums(rows, blocks):
+        r, idx = rows[:, None], fine_blocks(blocks, group, w3.shape[1])
+        return sums[:, r, idx], sabs[r, idx]
+
+    return SortedBlocks(alphas, m, group, group_sums(sums, group, axis=2),
+                        group_sums(sabs, group, axis=1), fine_sums,
+                        lambda rows, blk: w3[rows, blk])
+
+
+def blocks_from_features(alphas, xs, m, gram_inv, nonneg: bool, moments: int = 3,
+                         group: int = 1) -> SortedBlocks:
+    """:class:`SortedBlocks` of the ridge weights ``M = Lambda^{-1} X^T`` from the (weighted)
+    feature rows in sorted order ``xs (p, d)`` and ``gram_inv = Lambda^{-1}``; ``nonneg``:
+    the rows are known non-negative (then ``|X| = X``).
+
+    ``M`` is linear in the features: each block of 16 is summed in feature space (one batched
+    product), those sums are added up by groups, and only the groups' ``(nc, d)`` sums are
+    mapped by ``Lambda^{-1}``; the sums of blocks of 16 are mapped on demand, for the (factor,
+    block) pairs a scan refines. ``|M|`` is bounded by ``|Lambda^{-1}| |X|``; exact weights are
+    formed only for the pairs asked for: row i of ``Lambda^{-1}`` times the block's 16 rows.
+    """
+    d = xs.shape[1]
+    x3 = xs.reshape(-1, BLOCK, d)
+    nb = x3.shape[0]
+    fsum = np.matmul(_block_powers(alphas, moments), x3,
+                     out=buffer("ridge.fsum", (nb, moments, d)))  # (nb, moments, d)
+    csum = group_sums(fsum, group)
+    # (moments, d, nc) C-ordered, so that the per-factor running sums over blocks read rows:
+    # Lambda^{-1} times the transposed sums, straight into a work buffer (BLAS reads the
+    # transposed operand; no transposing copy).
+    sums = np.matmul(gram_inv, csum.transpose(1, 2, 0),
+                     out=buffer("ridge.sums", (moments, d, csum.shape[0])))
+    fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)  # (nb, d)
+    abs_inv = np.abs(gram_inv)
+    sabs = abs_inv @ (csum[:, 0] if nonneg else group_sums(fabs, group)).T
+
+    def fine(rows, blocks):
+        # Lambda^{-1} (and |Lambda^{-1}|) on the feature sums of the distinct blocks asked for
+        # only (U of them; a mask and its running count instead of np.unique's sort).
+        seen = np.zeros(csum.shape[0], dtype=bool)
+        seen[blocks] = True
+        ub = np.flatnonzero(seen)
+        inv = (np.cumsum(seen) - 1)[blocks]
+        idx = fine_blocks(ub, group, nb).ravel()  # (U group,)
+        mapped = np.empty((moments + 1, d, idx.size))
+        np.matmul(gram_inv, fsum[idx].transpose(1, 2, 0), out=mapped[:moments])
+        np.matmul(abs_inv, fabs[idx].T, out=mapped[moments])
+        out = mapped.reshape(moments + 1, d, ub.size, group)[
+            :, rows[:, None], inv[:, None], np.arange(group)]  # (moments + 1, P, group)
+        return out[:moments], out[moments]
+
+    def pairs(rows, blocks):
+        return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]  # (P, 16)
+
+    return SortedBlocks(alphas, m, group, sums, sabs, fine, pairs)
+
+
+def cumulants_from_weights(alphas, weights, m) -> TruncationCumulants:
+    """:class:`TruncationCumulants` from the weight columns in sorted order ``weights (d, p)``
+    (see :meth:`~r2pvi.duals.ExpectationOperator.truncation_cumulants`)."""
+    d, padded = weights.shape
+    # M, M v and M v^2 (columns in sorted order) share one buffer, so that one blocked prefix
+    # sum (a GEMM, faster than np.cumsum here) serves all three.
+    stacked = buffer("cumulants.stacked", (3, d, padded))
+    stacked[0] = weights
+    np.multiply(stacked[0], alphas, out=stacked[1])
+    np.multiply(stacked[1], alphas, out=stacked[2])
+    sums = prefix_sums(stacked.reshape(3 * d, padded)).reshape(3, d, padded)
+    head, a, c = sums[0, :, :m], sums[1, :, :m], sums[2, :, :m]
+    b = np.subtract(head[:, -1:], head, out=head)
+    return TruncationCumulants(alphas[:m], a, b, c)
