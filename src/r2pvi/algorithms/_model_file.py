@@ -16,7 +16,7 @@ from ..duals._sparse_rows import _SparseProduct, _UsedFeaturesFactor
 from ..duals.fdivergence import FDivergence, get_divergence
 from ..engine import FittedModel
 
-# Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
+# Version 2: no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
 # ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
 # the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
 # Version 3: header ``elliptical_kinds`` (one of "dense", "sparse", "used" per distinct factor)

@@ -111,7 +111,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
 
     # ------------------------------------------------------------------ fitting
     def _time_homogeneous(self) -> bool:
-        # --- time_homogeneous (issue 14/11): pooled steps, one Gram matrix for all steps
+        # time_homogeneous: pooled steps, one Gram matrix for all steps
         value = getattr(self, "time_homogeneous", False)
         if not isinstance(value, bool | np.bool_):
             raise TypeError(f"time_homogeneous must be True or False, got {plain(value)!r}")

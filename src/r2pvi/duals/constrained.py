@@ -205,9 +205,9 @@ def kl_constrained(
     weights, below 1 by the ``gamma`` shrinkage), the KL-ball analogue of
     :func:`~r2pvi.duals.kl_regularized`'s default form. Ma et al.'s centering puts the
     shrinkage's leftover weight ``1 - s_i`` at ``V = 0``: where ``e^{-V/b}`` is small (values
-    far from 0, ``b`` small) that leftover swamps the estimate of ``u_i`` and the result falls
-    below every value of V (measured: 0.012-0.024 below the exact ball value, below ``min V``,
-    on a 6-state linear MDP with ``gamma = 1``, whatever K). The normalized form has no
+    far from 0, ``b`` small) that leftover swamps the estimate of ``u_i`` and the result can
+    fall below every value of V, whatever K (docs/numerical-guarantees.md). The normalized
+    form has no
     leftover, tends to ``E_i(v)`` as ``rho_i -> 0+`` like the centered one, and equals the
     other forms for distributions. A factor with ``s_i <= 0`` (no positive total weight,
     signed features) gets its plain estimate.
@@ -222,27 +222,13 @@ def kl_constrained(
     ``underline beta`` on the dual variable) excludes that region: DRVI-L sets it from the
     data (:class:`~r2pvi.DRVIL`).
 
-    The 1-D problem is solved in ``t = log b`` for all factors at once: the objective, its
-    first and second derivatives on a log-spaced grid of ``b`` (one operator call for all
-    factors) give each factor a bracket around its best grid point and, as a first guess,
-    the maximizer of the quintic through the bracket's ends; a safeguarded Newton iteration
-    (bisection when a step leaves the bracket) refines it until its predicted gain is below
-    1e-14 of the values; the best value seen is returned. For ridge operators (``y = V -
-    min V``), the moments ``E_i[T_k(2 y / max y - 1)]`` of 24 Chebyshev polynomials, read in
-    the grid's operator call, give ``E_i[y^j exp(-y/b)]``, ``j = 0, 1, 2``, for every ``b``
-    in ``[max y / 6, max |V|)`` (interpolation at the Chebyshev points: truncation below
-    1e-17, rounding ~3e-15, per unit of weight): there the grid gets points 0.1 apart in
-    ``log b`` and the Newton steps need no pass over the points. For smaller ``b`` (and for
-    exact distributions, whose evaluation stays accurate to rounding relative to ``u_i``) a
-    few shared nodes near the guesses keep the moments ``E_i[(y/b0)^k / k! exp(-y/b0)]`` (one
-    operator call), from which a Taylor series in ``b0/b - 1`` gives any factor's objective
-    within ``|log(b/b0)| <= 0.15`` to 1e-17 per unit of weight; above the values' scale (or
-    where factors do not share their least value) grid points and Newton steps are evaluated
-    directly. Everything is computed in the log domain,
-    shifted by the smallest value each factor can see, with ``expm1`` for large ``b``: finite
-    and accurate for values from 0 to 1e6 and beyond and ``b`` from 1e-9 (relative to the
-    values) to ``2 (max V - min V) / rho``. The grid is scaled by the values, never by a
-    bound such as ``H r_max``.
+    The 1-D problem is solved in ``t = log b`` for all factors at once (a grid, a quintic
+    Hermite start, a safeguarded Newton iteration to 1e-14 of the values; the moments from
+    Chebyshev and Taylor series where they are accurate to 1e-17 per unit of weight: see
+    :mod:`r2pvi.duals._kl_ball`), in the log domain, shifted by the smallest value each factor
+    can see: finite and accurate for values from 0 to 1e6 and beyond and ``b`` from 1e-9
+    (relative to the values) to ``2 (max V - min V) / rho``. The grid is scaled by the values,
+    never by a bound such as ``H r_max``.
 
     Guarantees: with ``v_range = (lo, hi)`` (unbounded when None) and ``m_i = clip(E_i(v),
     lo, hi)``, the result lies in ``[min(lower_i, m_i), m_i]``, ``lower_i = lo`` for a

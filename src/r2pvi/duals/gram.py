@@ -31,9 +31,8 @@ __all__ = [
 ]
 
 # NumPy's LAPACK only: NumPy and SciPy wheels bundle separate OpenBLAS builds whose thread
-# pools spin against each other when calls alternate (measured: 12 ms instead of 0.4 ms per
-# 10,000 x 30 Gram matrix on 2 cores). d is small, so generic solves on the triangular
-# factors cost nothing next to forming the Gram matrix.
+# pools spin against each other when calls alternate (docs/benchmarks.md). d is small, so
+# generic solves on the triangular factors cost nothing next to forming the Gram matrix.
 
 
 def cholesky_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -79,8 +78,8 @@ class GramMatrixError(np.linalg.LinAlgError):
 FORMS = ("auto", "primal", "dual")
 
 # From this size on, triangular inverses go through LAPACK's trtri (d^3/3 flops) rather than
-# a generic solve against the identity (about 8x the flops): measured at d = 1152 with one BLAS
-# thread, 60 ms against 336 ms. Below it, NumPy's LAPACK only (see the note above).
+# a generic solve against the identity (about 8x the flops; docs/large-feature-spaces.md).
+# Below it, NumPy's LAPACK only (see the note above).
 _TRTRI_FROM = 256
 
 
@@ -110,9 +109,8 @@ def choose_form(n: int, d: int, sparse: bool = False) -> str:
     Counting multiply-adds, the primal costs ``n d^2 / 2`` (Gram) ``+ d^3 / 3`` (Cholesky and
     triangular inverse) and the dual ``n^2 d`` (Gram and ``C^{-1} Psi``) ``+ n^3 / 3``; the
     counts cross a little below d = n, but LAPACK's factorizations run slower than the
-    Gram products: measured at n = 1000, d = 1152 (one BLAS thread, a TV step with the
-    diagonal of ``Lambda^{-1}``), primal 907 ms and dual 675 ms. So the dual form whenever
-    d > n. For sparse rows ``d`` is the number of *used* features (those some row stores an
+    Gram products (docs/large-feature-spaces.md), so the dual form whenever d > n. For
+    sparse rows ``d`` is the number of *used* features (those some row stores an
     entry for): ``Lambda`` is ``gamma I`` off them, so the primal form factors a dense matrix
     of that size only (:class:`GramFactor`).
     """
@@ -296,7 +294,7 @@ class GramFactor:
         """``Lambda^{-1} b = L^{-T} L^{-1} b``. Small d: two generic solves on ``L`` (an LU
         each, nothing kept). From ``_TRTRI_FROM`` on, a generic solve costs ``O(d^3)`` per
         call, so the triangular inverse is formed once (``d^3 / 3``) and every solve is two
-        products: measured at d = 1152 (one BLAS thread) 2.6 ms against 94 ms per solve."""
+        products."""
         if self.chol.shape[0] < _TRTRI_FROM:
             return cholesky_solve(self.chol, b)
         linv = self.linv

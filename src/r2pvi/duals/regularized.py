@@ -131,8 +131,8 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     # um = u - s, used by the log1p form only where u > s/2, so its absolute error ~2^-53
     # sum_j |M_ij| (u + s) moves w_i by about lam 2^-53 sum_j |M_ij| / s_i: at most one
     # spread times that); above, um (then u = um + s, whose relative error is that of s):
-    # regressing u there would leave um = u - s with an error growing like lam / spread
-    # (measured 8x the bound at 30 spreads against a 40-digit reference). um is regressed on
+    # regressing u there would leave um = u - s with an error growing like lam / spread,
+    # past the bound. um is regressed on
     # e^z - 1, or on expm1(z) from lam = 64 spreads on, where every z is near 0 and e^z - 1
     # would carry the absolute rounding error of e^z (where |e^z - 1| >= 1/2 the subtraction
     # is exact anyway). tests/test_kl_one_regression.py checks both forms against the
