@@ -33,8 +33,9 @@ from r2pvi.duals import (
     kl_regularized,
     tv_regularized,
 )
+from r2pvi.duals.general_f import _mass_bound
 from r2pvi.duals.ranges import project_onto_range, value_range
-from r2pvi.duals.regularized import _mass_bound, row_sums
+from r2pvi.duals.regularized import row_sums
 from r2pvi.engine import StepContext
 from r2pvi.envs import SimulatedLinearMDP
 

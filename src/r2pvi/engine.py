@@ -32,13 +32,8 @@ import scipy.sparse as sp
 
 from .data import OfflineDataset
 from .duals._scratch import release
-from .duals.operators import (
-    GramFactor,
-    GramMatrixError,
-    RidgeExpectation,
-    choose_form,
-    ridge_cholesky,
-)
+from .duals.gram import GramFactor, GramMatrixError, choose_form, ridge_cholesky
+from .duals.operator import RidgeExpectation
 from .sparse import StackedSparse, stack_rows
 from .storage._finite import FIELDS, NonFiniteRows, check_next_products
 

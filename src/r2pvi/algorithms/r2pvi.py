@@ -7,14 +7,9 @@ import math
 
 from .._validation import check_choice, check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
+from ..duals.general_f import f_regularized
 from ..duals.ranges import project_onto_range, value_extent, value_range, value_unit
-from ..duals.regularized import (
-    KL_FORMS,
-    chi2_regularized,
-    f_regularized,
-    kl_regularized,
-    tv_regularized,
-)
+from ..duals.regularized import KL_FORMS, chi2_regularized, kl_regularized, tv_regularized
 from ..engine import StepRule
 from ._params import check_flag, check_v_min
 from ._variance import VarianceAwareMixin

@@ -16,11 +16,12 @@ imported only when used.
 
 from ._dataset import Trajectories
 from .cartpole_grid import GridEvaluation, evaluate_cartpole_grid
-from .collect import EpsilonGreedy, UniformPolicy, collect_episodes
+from .collect import collect_episodes
 from .finite import FiniteLinearMDP
 from .hard_instance import HardInstance
 from .policies import policy_table
 from .put_option import EXERCISE, HOLD, AmericanPutOption
+from .rollout_policies import EpsilonGreedy, UniformPolicy
 from .simulated import SIMULATED_ACTIONS, SimulatedLinearMDP
 
 __all__ = [

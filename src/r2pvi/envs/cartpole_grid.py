@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._sampling import check_count
-from .collect import as_policy_function
+from .rollout_policies import as_policy_function
 from .noisy_cartpole import (
     MAX_STEPS,
     NOMINAL,
