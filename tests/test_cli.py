@@ -1,6 +1,7 @@
 """The command line: help and the demo run end to end."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -38,6 +39,24 @@ def test_help_lists_commands():
     res = subprocess.run([sys.executable, "-m", "r2pvi", "--help"], capture_output=True,
                          text=True, check=True)
     assert "demo" in res.stdout
+
+
+@pytest.mark.parametrize("flag", ["--version", "-V"])
+def test_version_flag_prints_the_installed_version_and_exits_0(flag, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main([flag])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert out == f"r2pvi {r2pvi.__version__}\n"
+    assert re.fullmatch(r"r2pvi \d+\.\d+\.\d+\S*\n", out)
+
+
+def test_version_flag_from_the_command_line():
+    env = {**os.environ, "PYTHONPATH": SRC}
+    res = subprocess.run([sys.executable, "-m", "r2pvi", "--version"], capture_output=True,
+                         text=True, env=env, timeout=120)
+    assert res.returncode == 0 and res.stderr == ""
+    assert res.stdout == f"r2pvi {r2pvi.__version__}\n"
 
 
 # --------------------------------------------------------------------------- usage errors
