@@ -124,7 +124,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 KNOWN_CIRCLES = [
     # the sparse-row dataset subclasses OfflineDataset and episodes build both: ends when
     # sparse rows become a storage kind of the one dataset
-    ["r2pvi.data", "r2pvi.episodes", "r2pvi.sparse"],
+    ["r2pvi.data", "r2pvi.data.dataset", "r2pvi.data.episodes", "r2pvi.sparse"],
 ]
 
 

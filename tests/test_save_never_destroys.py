@@ -19,8 +19,8 @@ from hypothesis import strategies as st
 
 import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset
+from r2pvi.data.storage import format as _format
 from r2pvi.sparse import SparseOfflineDataset
-from r2pvi.storage import _format
 
 K, H, A, D = 12, 3, 2, 4
 SRC = str(Path(r2pvi.__file__).resolve().parents[1])  # children import the same r2pvi
@@ -259,7 +259,7 @@ def test_an_overwrite_killed_mid_swap_gives_the_old_dataset_back_on_open(tmp_pat
     proc = _run_child(f"""
         import os, signal, numpy as np
         from r2pvi import OfflineDataset
-        from r2pvi.storage import _format
+        from r2pvi.data.storage import format as _format
         real = os.replace
         def replace(src, dst):
             if ".tmp-" in str(src):  # the old dataset moved aside: die before the new one lands

@@ -31,6 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .data import OfflineDataset
+from .data.storage._finite import FIELDS, NonFiniteRows, check_next_products
 from .duals._scratch import release
 from .duals.operators import (
     GramFactor,
@@ -40,7 +41,6 @@ from .duals.operators import (
     ridge_cholesky,
 )
 from .sparse import StackedSparse, stack_rows
-from .storage._finite import FIELDS, NonFiniteRows, check_next_products
 
 __all__ = [
     "StepRule",
@@ -760,7 +760,7 @@ def _pooled_views(dataset: OfflineDataset):
     """:func:`_pooled_steps` without a copy of the features when they are held in memory as
     step-major float64 arrays: ``(H, K, ...)`` reshaped to ``(H K, ...)`` is a view. None
     otherwise (files, Dask, float32, computed next features: those are stacked by step)."""
-    from .storage import ArrayField, StoredNext
+    from .data.storage import ArrayField, StoredNext
 
     src = getattr(dataset, "_source", None)
     nxt = getattr(src, "next", None)

@@ -18,9 +18,9 @@ from .._io import save_npz
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
+from ..data.storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
 from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
-from ..storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
 from ._model_file import ELLIPTICAL_KINDS as _ELLIPTICAL_KINDS
 from ._model_file import ESTIMATOR_REGISTRY, MODEL_FORMAT_VERSION, load_model
 

@@ -37,7 +37,7 @@ from collections import deque
 
 import numpy as np
 
-from ..episodes import Episode
+from ..data.episodes import Episode
 from ._sampling import check_count
 
 __all__ = [

@@ -8,10 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fields import ArrayField, Field, FileField, _as_float64, npy_header
 from ._finite import Origin, array_origin, file_origin, nonfinite_error
-from ._format import _write_npy_header
-from ._next import NextStates, StoredNext
+from .fields import Field, _as_float64
+from .files import FileField
+from .memory import ArrayField
+from .next_states import NextStates, StoredNext
+from .npy import _write_npy_header, npy_header
 
 NEXT_FORMS = ("full", "behaviour")
 BEHAVIOUR_VERSION = 1  # version of the "behaviour" next-state field set in the manifest

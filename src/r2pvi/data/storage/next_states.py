@@ -5,17 +5,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._fields import ArrayField, DaskField, Field, FileField, _as_float64
 from ._finite import (
     NonFiniteRows,
     Origin,
     array_origin,
     first_nonfinite,
-    map_origin,
     nonfinite_error,
     subset_origin,
 )
-from ._reads import _prefetched
+from .dask_arrays import DaskField, _dask_values
+from .fields import Field, _as_float64
+from .files import FileField, _prefetched
+from .memory import ArrayField
 
 
 class NextStates:
@@ -228,84 +229,3 @@ class TableNext(NextStates):
     def take(self, idx):
         return TableNext(ArrayField(self.index.take(idx)), self.table, self.known_table,
                          self.origins)
-
-
-class MapNext(NextStates):
-    """Stored next observations ``(H, K, ...)`` and a feature map evaluated chunk by chunk.
-
-    ``feature_map(observations (n, ...), actions (n,)) -> (n, d)``; ``known_values``, when
-    given, maps next observations ``(n, ...)`` to known action values ``(n, A)`` (NaN: learn).
-    """
-
-    def __init__(self, observations: Field, feature_map, n_actions: int, n_features: int,
-                 known_values=None):
-        self.observations, self.feature_map = observations, feature_map
-        self.n_actions, self.n_features = int(n_actions), int(n_features)
-        self.known_values = known_values
-        self.has_known_values = known_values is not None
-        self.nonnegative = None
-
-    def origin(self, known=False):
-        if not known:
-            return map_origin("features of the next observations")
-        if isinstance(self.known_values, Field):
-            return self.known_values.origin("next_values")
-        return Origin("the next_values function", "make it return finite values, or NaN "
-                      "where the value must be learned")
-
-    def features(self, h, start=0, stop=None):
-        obs = self.observations.read(h, start, stop)
-        n = obs.shape[0]
-        out = np.empty((n, self.n_actions, self.n_features))
-        for a in range(self.n_actions):
-            f = np.asarray(self.feature_map(obs, np.full(n, a)), dtype=float)
-            if f.shape != (n, self.n_features):
-                raise ValueError(
-                    f"feature_map returned shape {f.shape} for {n} next observations; "
-                    f"expected (n, d) = ({n}, {self.n_features})")
-            out[:, a] = f
-        return out
-
-    def known(self, h, start=0, stop=None):
-        if self.known_values is None:
-            return None
-        if isinstance(self.known_values, Field):  # stored known values (H, K, A)
-            return _as_float64(self.known_values.read(h, start, stop))
-        obs = self.observations.read(h, start, stop)
-        kv = np.asarray(self.known_values(obs), dtype=float)
-        if kv.shape != (obs.shape[0], self.n_actions):
-            raise ValueError(f"known_values returned shape {kv.shape}, expected (n, A)")
-        return kv
-
-    def take(self, idx):
-        kv = self.known_values
-        if isinstance(kv, Field):
-            kv = ArrayField(kv.take(idx))
-        return MapNext(ArrayField(self.observations.take(idx)), self.feature_map,
-                       self.n_actions, self.n_features, kv)
-
-
-def _dask_values(nxt: StoredNext, h, qmax):
-    """Next-state values computed on the Dask workers, one task per trajectory chunk."""
-    import dask.array as da
-
-    feats = nxt.next_phi.array[h]
-    nonneg = nxt.nonnegative
-
-    def block(f, k=None, block_info=None):
-        f = np.asarray(f, dtype=np.float64)
-        nn = bool((f >= 0).all()) if nonneg is None else nonneg
-        try:
-            with np.errstate(invalid="ignore", over="ignore"):  # not inherited from the fit
-                return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64),
-                            nn)
-        except NonFiniteRows as exc:  # the block's first trajectory, from Dask
-            start = 0 if block_info is None else block_info[0]["array-location"][0][0]
-            raise nxt.nonfinite(h, int(start), exc) from None
-
-    if nxt.next_values is None:
-        v = da.map_blocks(block, feats, drop_axis=[1, 2], dtype=np.float64)
-    else:
-        kv = nxt.next_values.array[h].rechunk((feats.chunks[0], -1))
-        v = da.map_blocks(block, feats, kv[:, :, None], drop_axis=[1, 2], dtype=np.float64)
-    return np.asarray(v.compute(), dtype=np.float64)

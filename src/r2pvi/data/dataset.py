@@ -19,10 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .._io import file_error, load_npz, save_npz
+from .._validation import as_array, as_float_array, as_index_array
 from . import storage as _st
-from ._io import file_error, load_npz, save_npz
-from ._validation import as_array, as_float_array, as_index_array
 from .storage import SimplexFeatureWarning
+from .storage.behaviour import _next_form
+from .storage.fields import _float_dtype
 
 __all__ = ["OfflineDataset", "SimplexFeatureWarning", "check_simplex_features"]
 
@@ -142,7 +144,7 @@ class OfflineDataset:
         >>> np.shares_memory(ds.phi, phi_sm)                   # no copy was made
         True
         """
-        dtype = None if dtype is None else _st._float_dtype(dtype)
+        dtype = None if dtype is None else _float_dtype(dtype)
         p = _st.step_major(phi, "phi", 3, dtype)
         H, K, d = p.shape
         if K == 0:
@@ -220,7 +222,7 @@ class OfflineDataset:
         [[0.0, 1.0], [0.0, 1.0]]
         """
 
-        dtype = None if dtype is None else _st._float_dtype(dtype)
+        dtype = None if dtype is None else _float_dtype(dtype)
         p = _st.step_major(phi, "phi", 3, dtype)
         H, K, d = p.shape
         if K == 0 or H == 0 or d == 0:
@@ -777,13 +779,13 @@ class OfflineDataset:
         (['gram.npy', 'manifest.json', 'next_phi.npy', 'phi.npy', 'phi_sums.npy', 'rewards.npy'], 2)
         """
         p = Path(os.fspath(path))
-        next_form = _st._next_form(next_form)
+        next_form = _next_form(next_form)
         if p.suffix == ".npz":
             if next_form != "full":
                 raise ValueError("the legacy .npz format stores next_phi whole: use a "
                                  "directory path for next_form='behaviour'")
             return self._save_npz(p, overwrite)
-        dtype = None if dtype is None else _st._float_dtype(dtype)
+        dtype = None if dtype is None else _float_dtype(dtype)
         return _st.write_directory(self._source, p, dtype=dtype, overwrite=overwrite,
                                    next_form=next_form)
 

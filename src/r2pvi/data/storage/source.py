@@ -4,16 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._fields import (
-    CHUNK,
-    ArrayField,
-    DaskField,
-    Field,
-    FileField,
-    MappedField,
-    _as_float64,
-    widen_range,
-)
 from ._finite import (
     FIELDS,
     check_step_rewards,
@@ -21,70 +11,14 @@ from ._finite import (
     first_nonfinite,
     subset_origin,
 )
-from ._next import NextStates
-from ._reads import _prefetched
+from .dask_arrays import DaskField, _dask_products, _quiet_product
+from .fields import CHUNK, Field, _as_float64, widen_range
+from .files import FileField, _prefetched
+from .memory import ArrayField
+from .next_states import NextStates
+from .observations import MappedField
 
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
-
-
-def _quiet():
-    """Dask's worker threads do not inherit the fit's ``np.errstate``: unchecked data may hold
-    infinities, whose products (``inf * 0``) must not warn before the fit's checks name them.
-    A new context each time (one ``errstate`` must not be entered by two threads at once)."""
-    return np.errstate(invalid="ignore", over="ignore")
-
-
-def _quiet_product(b, z):
-    with _quiet():
-        return np.asarray(b, dtype=np.float64) @ z
-
-
-def _dask_products(field: DaskField, h, cols, weights, with_gram):
-    """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` summed on the Dask workers.
-
-    One task per trajectory chunk forms that chunk's products in float64 (the columns, and
-    the weights ``W``, travel to the workers with the graph), Dask adds the partial sums up
-    in a tree, and only the ``d x (d + m)`` sums reach the client: the step's features never
-    do. Equal to the local chunked sums up to the order of the additions.
-    """
-    import dask.array as da
-
-    x = field.step_rows(h)
-    K, d = x.shape
-    cols = [np.asarray(c, dtype=np.float64) for c in cols]
-    widths = [1 if c.ndim == 1 else int(np.prod(c.shape[1:])) for c in cols]
-    m = sum(widths)
-    y = np.empty((K, m + (0 if weights is None else 1)))
-    if m:
-        y[:, :m] = np.column_stack([c.reshape(K, -1) for c in cols])
-    if weights is not None:
-        w = np.asarray(weights, dtype=np.float64)
-        y[:, :m] *= w[:, None]
-        y[:, m] = w
-    g = d if with_gram else 0
-    width = g + m
-
-    def block(xb, yb):
-        xb = np.asarray(xb, dtype=np.float64)
-        out = np.empty((d, width))
-        with _quiet():  # an infinity in the data is named by the client's check of the sums
-            if with_gram:
-                xw = xb if weights is None else xb * yb[:, m:]
-                out[:, :d] = xw.T @ xb
-            out[:, g:] = xb.T @ yb[:, :m]
-        return out.reshape(1, d * width)
-
-    nb = len(x.chunks[0])
-    parts = da.map_blocks(block, x, da.from_array(y, chunks=(x.chunks[0], -1)),
-                          chunks=((1,) * nb, (d * width,)), dtype=np.float64)
-    total = np.asarray(parts.sum(axis=0).compute(), dtype=np.float64).reshape(d, width)
-    gram = total[:, :d].copy() if with_gram else None
-    out, at = [], g
-    for c, k in zip(cols, widths, strict=True):
-        piece = total[:, at:at + k]
-        out.append(piece[:, 0].copy() if c.ndim == 1 else piece.reshape((d,) + c.shape[1:]))
-        at += k
-    return gram, out
 
 
 class StepSource:
