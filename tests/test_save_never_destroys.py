@@ -110,7 +110,7 @@ def test_overwrite_replaces_a_dataset_an_old_dataset_file_or_an_empty_directory(
 
     directory = _data().save(tmp_path / "dir")
     single = tmp_path / "single"
-    _data()._save_npz(tmp_path / "single.npz").rename(single)  # the single-file format
+    _data().save(tmp_path / "single.npz").rename(single)  # the single-file format
     (tmp_path / "empty").mkdir()
     for path in (directory, single, tmp_path / "empty"):
         save(path)

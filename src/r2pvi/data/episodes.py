@@ -39,9 +39,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..features.maps import as_feature_map
-from .dataset import OfflineDataset, check_simplex_features
+from .build import _check_map_actions, check_simplex_features
 
-__all__ = ["Episode", "dataset_from_episodes", "episode_observations", "as_episode_list"]
+__all__ = ["Episode", "from_episodes", "episode_observations", "as_episode_list"]
 
 _FIELDS = ("observations", "actions", "rewards", "terminations", "truncations")
 
@@ -159,13 +159,49 @@ def _check_episode(ep, k: int, n_actions: int):
     return obs, acts, rew, term, trunc
 
 
-def dataset_from_episodes(episodes, feature_map, n_actions: int, horizon: int | None = None, *,
-                          reward_offset=None, check_simplex: bool = True) -> OfflineDataset:
-    """Build an :class:`~r2pvi.OfflineDataset` from episodes of any length.
+def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | None = None, *,
+                  reward_offset=None, check_simplex: bool = True):
+    """Build a dataset from episodes of any length (Gymnasium rollouts, Minari datasets).
 
-    See :meth:`r2pvi.OfflineDataset.from_episodes` (the public entry point) and the module
-    docstring for the conventions (termination, truncation, padding, reward offsets).
+    Parameters
+    ----------
+    episodes : minari.MinariDataset or iterable
+        Episodes with Minari's ``EpisodeData`` fields (objects or dicts):
+        ``observations (T+1, ...)``, ``actions (T,)``, ``rewards (T,)``,
+        ``terminations (T,)``, ``truncations (T,)``.
+    feature_map : callable or fitted transformer
+        ``feature_map(observations, actions) -> (n, d)`` (e.g.
+        ``r2pvi.features.cross_actions(NormalizedRBF().fit(obs), n_actions)``), or a
+        fitted observation transformer, crossed with the actions block-wise.
+    n_actions : int
+        Number of discrete actions A.
+    horizon : int, optional
+        H; None takes the longest episode. Longer episodes are cut at H.
+    reward_offset : None, "auto" or float
+        Negative rewards are refused unless shifted by ``reward_offset`` (an exact
+        shift: the same greedy policy; see :mod:`r2pvi.episodes`).
+    check_simplex : bool, default True
+
+    A terminated episode continues in an absorbing state of known value 0; a truncated
+    one ends without a terminal value; steps after an episode's end carry zero features
+    (no data). Details: :mod:`r2pvi.episodes`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from r2pvi import OfflineDataset
+    >>> from r2pvi.features import StateAggregation, cross_actions
+    >>> ep = {"observations": [[0.0], [0.4], [0.9]], "actions": [1, 0],
+    ...       "rewards": [1.0, 1.0], "terminations": [False, True],
+    ...       "truncations": [False, False]}
+    >>> fmap = cross_actions(StateAggregation(n_bins=2).fit([[0.0], [1.0]]), 2)
+    >>> ds = OfflineDataset.from_episodes([ep], fmap, n_actions=2, horizon=3)
+    >>> ds.phi[0].tolist()                     # two steps, then no data
+    [[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]
+    >>> ds.next_values[0, 1].tolist()          # terminated: absorbing, value 0
+    [0.0, 0.0]
     """
+    _check_map_actions(feature_map, n_actions)
     if isinstance(n_actions, bool) or not isinstance(n_actions, numbers.Integral):
         raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
     if n_actions < 1:
@@ -252,7 +288,7 @@ def dataset_from_episodes(episodes, feature_map, n_actions: int, horizon: int | 
         next_phi[h, pad] = next_phi[h, src]
         next_values[h, pad] = next_values[h, src]
         next_states[pad, h] = next_states[src, h]
-    return OfflineDataset.from_features(
+    return cls.from_features(
         phi.transpose(1, 0, 2), rewards.T, next_phi.transpose(1, 0, 2, 3),
         next_values.transpose(1, 0, 2), check_simplex=False,
         states=states, actions=actions, next_states=next_states,

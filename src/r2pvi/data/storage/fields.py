@@ -69,3 +69,12 @@ class Field:
         for s in range(0, K, chunk):
             e = min(K, s + chunk)
             yield s, e, self.read(h, s, e)
+
+
+def readonly(a):
+    """A read-only view of the ndarray ``a`` (anything else, e.g. a Dask array, as it is)."""
+    if not isinstance(a, np.ndarray):
+        return a  # a Dask array: immutable already
+    v = a.view()
+    v.flags.writeable = False
+    return v
