@@ -20,7 +20,6 @@ import numpy as np
 
 from .._validation import as_index_array
 from . import build, build_observations, episodes, files
-from . import storage as _st
 from .build import check_simplex_features
 from .storage import SimplexFeatureWarning
 from .storage.fields import readonly
@@ -107,9 +106,7 @@ class OfflineDataset:
     @property
     def storage(self) -> str:
         """Where the data lives: ``"memory"``, ``"disk"`` or ``"dask"``."""
-        f = self._source.phi
-        return "disk" if isinstance(f, _st.FileField) else (
-            "dask" if isinstance(f, _st.DaskField) else "memory")
+        return self._source.phi.storage
 
     @property
     def phi(self) -> np.ndarray:
@@ -125,11 +122,7 @@ class OfflineDataset:
     def next_phi(self) -> np.ndarray:
         """Features of every next-state action, (K, H, A, d) (a read-only view when stored;
         computed, and so materialized, when they come from a table or a feature map)."""
-        nxt = self._source.next
-        if isinstance(nxt, _st.StoredNext):
-            return readonly(nxt.next_phi.lazy().swapaxes(0, 1))
-        out = np.stack([nxt.features(h) for h in range(self.horizon)], axis=1)
-        return readonly(out)
+        return readonly(self._source.next.all_features(self.horizon))
 
     @property
     def next_values(self) -> np.ndarray:
@@ -147,23 +140,15 @@ class OfflineDataset:
     def nonnegative_next_features(self) -> bool:
         """Whether every next-state feature is >= 0 (computed once, then cached)."""
         if self._nonnegative is None:
-            nxt = self._source.next
-            self._nonnegative = all(
-                bool((nxt.features(h, s, min(s + self._source.chunk, self.n_trajectories))
-                      >= 0).all())
-                for h in range(self.horizon - 1)
-                for s in range(0, self.n_trajectories, self._source.chunk)
-            )
+            self._nonnegative = self._source.next.find_nonnegative(
+                self.horizon, self.n_trajectories, self._source.chunk)
         return self._nonnegative
 
     @property
     def nonnegative_features(self) -> bool:
         """Whether every taken-action feature is >= 0 (computed once, then cached)."""
         if self._nonnegative_phi is None:
-            self._nonnegative_phi = all(
-                bool((rows >= 0).all()) for h in range(self.horizon)
-                for _, _, rows in self._source.phi.chunks(h, self._source.chunk)
-            )
+            self._nonnegative_phi = self._source.phi.nonnegative(self._source.chunk)
         return self._nonnegative_phi
 
     @property

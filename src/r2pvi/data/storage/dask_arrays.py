@@ -7,10 +7,13 @@ import numpy as np
 
 from ._finite import NonFiniteRows, dask_origin
 from .fields import Field
+from .memory import in_memory
 
 
 class DaskField(Field):
     """A field held as a Dask array ``(H, K, ...)`` chunked along trajectories."""
+
+    storage = "dask"
 
     def __init__(self, array):
         self.array = array
@@ -19,7 +22,7 @@ class DaskField(Field):
     def origin(self, name):
         return dask_origin(name)
 
-    def read(self, h, start=0, stop=None):
+    def read(self, h, start=0, stop=None, out=None):
         return np.asarray(self.array[h, start:stop].compute())
 
     def lazy(self):
@@ -28,7 +31,10 @@ class DaskField(Field):
     def take(self, idx):
         return np.asarray(self.array[:, np.asarray(idx)].compute())
 
-    def step_rows(self, h):
+    def subset(self, idx, name):
+        return in_memory(self, idx, name)
+
+    def lazy_step(self, h):
         """Step ``h`` as a lazy ``(K, d)`` Dask array chunked along trajectories only."""
         x = self.array[h]
         return x.rechunk((x.chunks[0], -1))
@@ -38,6 +44,30 @@ class DaskField(Field):
         bounds = np.cumsum((0,) + tuple(self.array.chunks[1]))
         for s, e in zip(bounds[:-1], bounds[1:], strict=True):
             yield int(s), int(e), self.read(h, int(s), int(e))
+
+    # ------------------------------------------------------------------ what a fit reads
+    def step_rows(self, h, chunk, out=None):
+        return np.ascontiguousarray(self.read(h), dtype=np.float64)
+
+    def times(self, h, z, chunk):
+        """``Phi_h @ z`` on the workers (one task per trajectory chunk)."""
+        x = self.lazy_step(h)
+        out = x.map_blocks(lambda b: _quiet_product(b, z),
+                           chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
+                           drop_axis=None if z.ndim == 2 else 1)
+        return np.asarray(out.compute(), dtype=np.float64)
+
+    def products(self, h, cols, weights=None, with_gram=True):
+        return _dask_products(self, h, cols, weights, with_gram)
+
+    def bounds(self):
+        import dask
+
+        low, high = dask.compute(self.array.min(), self.array.max())
+        return float(low), float(high)
+
+    def remote_next_values(self, nxt, h, qmax):
+        return _dask_values(nxt, h, qmax)
 
 
 def _quiet():
@@ -62,7 +92,7 @@ def _dask_products(field: DaskField, h, cols, weights, with_gram):
     """
     import dask.array as da
 
-    x = field.step_rows(h)
+    x = field.lazy_step(h)
     K, d = x.shape
     cols = [np.asarray(c, dtype=np.float64) for c in cols]
     widths = [1 if c.ndim == 1 else int(np.prod(c.shape[1:])) for c in cols]

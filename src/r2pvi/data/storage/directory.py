@@ -128,6 +128,7 @@ def open_directory(path, feature_map=None) -> StepSource:
                       sums=sums, reward_range=manifest_range(mf, "reward_range"),
                       reward_noise=_manifest_noise(path, mf),
                       row_sums=manifest_range(mf, "phi_row_sums"),
+                      range_recorded=True,
                       stored_files={n: path / files[n] for n in ("gram", "phi_sums")
                                     if n in files})
 

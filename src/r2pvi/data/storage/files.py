@@ -11,6 +11,7 @@ import numpy as np
 
 from ._finite import file_origin
 from .fields import Field
+from .memory import in_memory
 from .npy import npy_header
 
 
@@ -18,6 +19,8 @@ class FileField(Field):
     """A field in a ``.npy`` file: :meth:`read` reads a range with ``pread`` (into ``out`` or a
     fresh array); fits stream a step by chunk (``_prefetched``: ``pread`` and a cast for
     float32, views of memory-mapped windows for float64)."""
+
+    storage = "disk"
 
     def __init__(self, path, name: str | None = None):
         self.path = Path(path)
@@ -57,6 +60,21 @@ class FileField(Field):
 
     def take(self, idx):
         return np.asarray(self.lazy()[:, idx])
+
+    def subset(self, idx, name):
+        return in_memory(self, idx, name)
+
+    def float64_chunks(self, h, chunk):
+        K = self.shape[1]
+        yield from _prefetched(self, h, K, chunk, (min(chunk, K),) + self.shape[2:])
+
+    def step_rows(self, h, chunk, out=None):
+        shape = self.shape[1:]
+        if out is None or out.shape != shape or out.dtype != np.float64:
+            out = np.empty(shape)
+        for s, e, rows in self.float64_chunks(h, chunk):
+            out[s:e] = rows
+        return out
 
     def close(self):
         if self._fd is not None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._finite import Origin, array_origin
+from ._finite import Origin, array_origin, subset_origin
 from .fields import Field
 
 
@@ -22,7 +22,7 @@ class ArrayField(Field):
     def origin(self, name):
         return array_origin(name) if self._origin is None else self._origin
 
-    def read(self, h, start=0, stop=None):
+    def read(self, h, start=0, stop=None, out=None):
         return self.array[h, start:stop]
 
     def lazy(self):
@@ -30,3 +30,26 @@ class ArrayField(Field):
 
     def take(self, idx):
         return self.array[:, idx]
+
+    def subset(self, idx, name):
+        return in_memory(self, idx, name)
+
+    def step_rows(self, h, chunk, out=None):
+        if self.dtype == np.float64 or out is None:
+            return np.ascontiguousarray(self.read(h), dtype=np.float64)
+        shape = self.shape[1:]
+        if out.shape != shape or out.dtype != np.float64:
+            out = np.empty(shape)
+        np.copyto(out, self.read(h))
+        return out
+
+    def times(self, h, z, chunk):
+        if self.dtype == np.float64:
+            return self.read(h) @ z
+        return super().times(h, z, chunk)
+
+
+def in_memory(field: Field, idx: np.ndarray, name: str) -> ArrayField:
+    """The trajectories ``idx`` of ``field`` read into memory; its errors name where the
+    numbers came from (the selection's trajectory numbers)."""
+    return ArrayField(field.take(idx), subset_origin(field.origin(name)))

@@ -11,11 +11,8 @@ from ._finite import (
     array_origin,
     first_nonfinite,
     nonfinite_error,
-    subset_origin,
 )
-from .dask_arrays import DaskField, _dask_values
 from .fields import Field, _as_float64
-from .files import FileField, _prefetched
 from .memory import ArrayField
 
 
@@ -33,6 +30,17 @@ class NextStates:
     def known(self, h, start=0, stop=None):
         """Known next-state action values ``(n, A)`` (NaN: learn), or None."""
         return None
+
+    def all_features(self, horizon: int) -> np.ndarray:
+        """Every step's next-state features, trajectory-major ``(K, H, A, d)``: a view where
+        they are stored, else computed (and so materialized)."""
+        return np.stack([self.features(h) for h in range(horizon)], axis=1)
+
+    def find_nonnegative(self, horizon: int, n: int, chunk: int) -> bool:
+        """Whether every used next-state feature (steps ``0 .. H-2``) is ``>= 0``, read by
+        chunk (:attr:`nonnegative` when known)."""
+        return all(bool((self.features(h, s, min(s + chunk, n)) >= 0).all())
+                   for h in range(horizon - 1) for s in range(0, n, chunk))
 
     def values(self, h, qmax, n, chunk, out=None) -> np.ndarray:
         """``V_{h+1}`` at the K next states: ``qmax(features, known, nonneg) -> (n,)`` by chunk,
@@ -85,36 +93,25 @@ class StoredNext(NextStates):
     def features(self, h, start=0, stop=None):
         return self.next_phi.read(h, start, stop)
 
+    def all_features(self, horizon):
+        return self.next_phi.lazy().swapaxes(0, 1)
+
     def known(self, h, start=0, stop=None):
         return None if self.next_values is None else _as_float64(
             self.next_values.read(h, start, stop))
 
     def values(self, h, qmax, n, chunk, out=None):
         field = self.next_phi
-        if isinstance(field, DaskField):
-            v = _dask_values(self, h, qmax)
+        v = field.remote_next_values(self, h, qmax)  # Dask: on the workers
+        if v is not None:
             if out is None:
                 return v
             out[...] = v
             return out
-        # Two reused buffers (a chunk read in the storage type, then cast to float64): no
-        # fresh allocation, so no page faults, per chunk.
+        # Chunks in float64 (reused buffers, or views of the stored numbers): no fresh
+        # allocation, so no page faults, per chunk.
         out = np.empty(n) if out is None else out
         shape = (min(chunk, n),) + field.shape[2:]
-        if isinstance(field, FileField):
-            reads = _prefetched(field, h, n, chunk, shape)
-        else:
-            reads = ((s, min(n, s + chunk), field.read(h, s, min(n, s + chunk)))
-                     for s in range(0, n, chunk))
-        f64 = np.empty(shape)
-
-        def float64_rows():
-            for s, e, rows in reads:
-                if not (rows.dtype == np.float64 and rows.flags.c_contiguous):
-                    np.copyto(f64[: e - s], rows)
-                    rows = f64[: e - s]
-                yield s, e, rows
-
         linear = getattr(qmax, "linear", None)
         lin = None
         if linear is not None and self.next_values is None and self.nonnegative is not None:
@@ -126,7 +123,7 @@ class StoredNext(NextStates):
             A, d = field.shape[2], field.shape[3]
             q = np.empty(shape[0] * A)
             check = getattr(qmax, "check", False)
-            for s, e, rows in float64_rows():
+            for s, e, rows in field.float64_chunks(h, chunk):
                 qa = np.matmul(rows.reshape(-1, d), u, out=q[: (e - s) * A]).reshape(e - s, A)
                 # a non-finite feature makes its product non-finite (before the clip, which
                 # would hide an infinity): one sum of the chunk's products
@@ -142,16 +139,13 @@ class StoredNext(NextStates):
                     np.max(qa, axis=1, out=out[s:e])
             np.clip(out, 0.0, upper, out=out)
             return out
-        for s, e, feats in float64_rows():
+        for s, e, feats in field.float64_chunks(h, chunk):
             out[s:e] = self._chunk_values(h, s, e, feats, qmax)
         return out
 
     def take(self, idx):
-        nv = None if self.next_values is None else ArrayField(
-            self.next_values.take(idx), subset_origin(self.next_values.origin("next_values")))
-        return StoredNext(ArrayField(self.next_phi.take(idx),
-                                     subset_origin(self.next_phi.origin("next_phi"))),
-                          nv, self.nonnegative)
+        nv = None if self.next_values is None else self.next_values.subset(idx, "next_values")
+        return StoredNext(self.next_phi.subset(idx, "next_phi"), nv, self.nonnegative)
 
 
 class TableNext(NextStates):

@@ -23,7 +23,7 @@ class MappedField(Field):
     def origin(self, name):
         return map_origin("taken-action features")
 
-    def read(self, h, start=0, stop=None):
+    def read(self, h, start=0, stop=None, out=None):
         obs = self.observations.read(h, start, stop)
         act = np.asarray(self.actions.read(h, start, stop), dtype=np.int64)
         out = np.asarray(self.feature_map(obs, act), dtype=np.float64)
@@ -37,6 +37,10 @@ class MappedField(Field):
 
     def take(self, idx):
         return self.lazy()[:, idx]
+
+    def subset(self, idx, name):
+        return MappedField(ArrayField(self.observations.take(idx)),
+                           ArrayField(self.actions.take(idx)), self.feature_map, self.shape[2])
 
 
 class MapNext(NextStates):

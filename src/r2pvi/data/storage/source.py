@@ -9,14 +9,9 @@ from ._finite import (
     check_step_rewards,
     file_origin,
     first_nonfinite,
-    subset_origin,
 )
-from .dask_arrays import DaskField, _dask_products, _quiet_product
-from .fields import CHUNK, Field, _as_float64, widen_range
-from .files import FileField, _prefetched
-from .memory import ArrayField
+from .fields import CHUNK, Field, _as_float64
 from .next_states import NextStates
-from .observations import MappedField
 
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
 
@@ -35,13 +30,18 @@ class StepSource:
     was checked when the source was built (finite; the rewards' range taken); a fit checks
     the others as it reads them (``storage._finite``). Stored ``grams`` and ``sums`` are
     checked here (``H d^2`` numbers); ``stored_files`` maps ``"gram"`` and ``"phi_sums"`` to
-    the files they were read from, for the errors.
+    the files they were read from, for the errors; ``range_recorded`` says that
+    ``reward_range`` is what a directory's manifest records (named by the errors).
+
+    The source never says which storage kind it holds: each field offers the reads and
+    products a fit needs (see :class:`~r2pvi.data.storage.fields.Field`).
     """
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
                  nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
                  sums=None, unit_rows: bool = False, reward_range=None,
-                 reward_noise: float = 0.0, row_sums=None, checked=(), stored_files=None):
+                 reward_noise: float = 0.0, row_sums=None, checked=(), stored_files=None,
+                 range_recorded: bool = False):
         self.phi, self.rewards, self.next = phi, rewards, nxt
         self.checked = frozenset(checked)
         if not self.checked <= FIELDS:
@@ -53,7 +53,7 @@ class StepSource:
             if value is not None:
                 _check_stored(value, name, what, stored_files.get(name))
         # The range a directory's manifest records for its rewards file (named by errors).
-        self._recorded_range = reward_range if isinstance(rewards, FileField) else None
+        self._recorded_range = reward_range if range_recorded else None
         # The rewards' (min, max) when known (from validation or the manifest), else found
         # by reward_bounds() from the rewards alone (never the features) and kept.
         self.reward_range = None if reward_range is None else (
@@ -110,89 +110,42 @@ class StepSource:
     def n_actions(self) -> int:
         return self.next.n_actions
 
-    def phi_step(self, h: int, out: np.ndarray | None = None) -> np.ndarray:
+    @property
+    def dense_rows(self) -> bool:
+        """Whether a step's taken-action rows are an ndarray (False: sparse rows), so that
+        a step's operator can be accumulated by chunk."""
+        return self.phi.dense_rows
+
+    def phi_step(self, h: int, out: np.ndarray | None = None):
         """Step ``h``'s taken-action features ``(K, d)`` as float64: a view when they are
-        stored so in memory, else written into ``out`` (a reused buffer) or a new array."""
-        field = self.phi
-        if isinstance(field, DaskField) or (isinstance(field, ArrayField) and (
-                field.dtype == np.float64 or out is None)):
-            return _as_float64(field.read(h))
-        shape = (self.n_trajectories, self.n_features)
-        if out is None or out.shape != shape or out.dtype != np.float64:
-            out = np.empty(shape)
-        if isinstance(field, ArrayField):
-            np.copyto(out, field.read(h))
-            return out
-        if isinstance(field, FileField):
-            chunk_shape = (min(self.chunk, shape[0]), shape[1])
-            for s, e, rows in _prefetched(field, h, shape[0], self.chunk, chunk_shape):
-                out[s:e] = rows
-            return out
-        for s in range(0, shape[0], self.chunk):
-            e = min(shape[0], s + self.chunk)
-            out[s:e] = field.read(h, s, e)
-        return out
+        stored so in memory, else written into ``out`` (a reused buffer) or a new array;
+        sparse rows as they are stored (CSR)."""
+        return self.phi.step_rows(h, self.chunk, out)
 
     def phi_chunks(self, h: int):
         """``(start, stop, rows)`` over step ``h``'s taken-action features, ``rows`` a float64
         ``(stop - start, d)`` array to read, valid until the next iteration and not to be
         written: a reused buffer, a view of an in-memory array, or (native float64 files) a
-        read-only view of the memory-mapped file (see ``storage._reads._prefetched``); copy
+        read-only view of the memory-mapped file (see ``storage.files._prefetched``); copy
         what must outlive the iteration."""
-        field, K = self.phi, self.n_trajectories
-        shape = (min(self.chunk, K), self.n_features)
-        if isinstance(field, FileField):
-            yield from _prefetched(field, h, K, self.chunk, shape)
-            return
-        reads = field.chunks(h, self.chunk)  # a Dask array: its own chunks
-        f64 = None
-        for s, e, rows in reads:
-            if rows.dtype != np.float64 or not rows.flags.c_contiguous:
-                if f64 is None or f64.shape[0] < e - s:
-                    f64 = np.empty((max(e - s, shape[0]), shape[1]))
-                np.copyto(f64[: e - s], rows)
-                rows = f64[: e - s]
-            yield s, e, rows
+        return self.phi.float64_chunks(h, self.chunk)
 
     def remote_products(self, h: int, cols, weights=None, with_gram: bool = True):
         """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` formed where the data
         is (the Dask workers) for features held as Dask arrays; None for data the client
         reads itself (memory, files, computed features), which the engine sums by chunk."""
-        if not isinstance(self.phi, DaskField):
-            return None
-        return _dask_products(self.phi, h, cols, weights, with_gram)
+        return self.phi.products(h, cols, weights, with_gram)
 
     def phi_times(self, h: int, z: np.ndarray) -> np.ndarray:
         """``Phi_h @ z`` (``(K,)`` or ``(K, m)``, float64): in memory one product, on disk by
         chunk, for Dask arrays on the workers (one task per trajectory chunk)."""
-        field = self.phi
-        if isinstance(field, DaskField):
-            x = field.step_rows(h)
-            out = x.map_blocks(lambda b: _quiet_product(b, z),
-                               chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
-                               drop_axis=None if z.ndim == 2 else 1)
-            return np.asarray(out.compute(), dtype=np.float64)
-        if isinstance(field, ArrayField) and field.dtype == np.float64:
-            return field.read(h) @ z
-        out = np.empty((self.n_trajectories,) + z.shape[1:])
-        for s, e, rows in self.phi_chunks(h):
-            out[s:e] = rows @ z
-        return out
+        return self.phi.times(h, z, self.chunk)
 
     def reward_bounds(self) -> tuple[float, float]:
         """The rewards' ``(min, max)``: known since validation or from the manifest, else
         read from the rewards field once (``H K`` numbers, no feature) and kept."""
         if self.reward_range is None:
-            field = self.rewards
-            if isinstance(field, DaskField):
-                import dask
-
-                low, high = dask.compute(field.array.min(), field.array.max())
-            else:
-                low, high = np.inf, -np.inf
-                for h in range(self.horizon):
-                    low, high = widen_range((low, high), field.read(h))
-            self.reward_range = (float(low), float(high))
+            self.reward_range = self.rewards.bounds()
         return self.reward_range
 
     def rewards_step(self, h: int) -> np.ndarray:
@@ -238,12 +191,7 @@ class StepSource:
         for k, v in self.extras.items():
             extras[k] = np.asarray(v[idx])
             extras[k].flags.writeable = False
-        phi = self.phi
-        phi = MappedField(ArrayField(phi.observations.take(idx)),
-                          ArrayField(phi.actions.take(idx)), phi.feature_map,
-                          phi.shape[2]) if isinstance(phi, MappedField) else ArrayField(
-                              phi.take(idx), subset_origin(phi.origin("phi")))
-        rewards = ArrayField(self.rewards.take(idx), subset_origin(self.rewards.origin("rewards")))
+        phi, rewards = self.phi.subset(idx, "phi"), self.rewards.subset(idx, "rewards")
         return StepSource(phi, rewards, self.next.take(idx), extras, self.nonnegative_phi,
                           self.chunk, unit_rows=self.unit_rows, reward_noise=self.reward_noise,
                           row_sums=self.phi_row_sums,  # a subset's sums lie in the range
