@@ -159,9 +159,9 @@ def test_sparse_dataset_save_takes_the_save_keywords_and_touches_nothing(tmp_pat
     ds = SparseOfflineDataset.from_rows(rows, rng.random((K, H)), nxt, A)
     target = tmp_path / "kept"
     before = _user_directory(target)
-    with pytest.raises(TypeError, match="cannot save a SparseOfflineDataset.*kept"):
+    with pytest.raises(TypeError, match="cannot save a dataset of sparse rows.*kept"):
         ds.save(target, overwrite=True)
-    with pytest.raises(TypeError, match="cannot save a SparseOfflineDataset"):
+    with pytest.raises(TypeError, match="cannot save a dataset of sparse rows"):
         ds.save(tmp_path / "new", dtype="float32", next_form="full")
     assert _snapshot(target) == before and not (tmp_path / "new").exists()
 

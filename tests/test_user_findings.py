@@ -283,7 +283,7 @@ def test_large_feature_spaces_snippet_runs_as_written(capsys):
     assert blocks
     for code in blocks:
         exec(compile(code, "large-feature-spaces.md", "exec"), {})  # noqa: S102
-    assert "SparseOfflineDataset 10000 (20, 10000)" in capsys.readouterr().out
+    assert "memory (sparse rows) 10000 (20, 10000)" in capsys.readouterr().out
 
 
 def test_docs_no_longer_say_datasets_are_dense_and_readme_shows_load():

@@ -275,14 +275,20 @@ def _check_extras(K, H, A, _owned=(), **given) -> dict:
 
 
 
-def _check_feature_map(feature_map, n_actions) -> None:
-    """A callable ``feature_map(states, actions) -> (n, d)`` and an integer ``n_actions >= 1``."""
-    if not callable(feature_map):
-        raise TypeError("feature_map must be callable: feature_map(states, actions) -> (n, d)")
+def _check_n_actions(n_actions) -> int:
+    """``n_actions``, an integer ``>= 1``, as an int."""
     if isinstance(n_actions, bool) or not isinstance(n_actions, int | np.integer):
         raise TypeError(f"n_actions must be an integer, got {n_actions!r}")
     if n_actions < 1:
         raise ValueError(f"n_actions must be >= 1, got {n_actions}")
+    return int(n_actions)
+
+
+def _check_feature_map(feature_map, n_actions) -> None:
+    """A callable ``feature_map(states, actions) -> (n, d)`` and an integer ``n_actions >= 1``."""
+    if not callable(feature_map):
+        raise TypeError("feature_map must be callable: feature_map(states, actions) -> (n, d)")
+    _check_n_actions(n_actions)
     _check_map_actions(feature_map, n_actions)
 
 

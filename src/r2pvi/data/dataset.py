@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._validation import as_index_array
-from . import build, build_observations, episodes, files
+from . import build, build_observations, build_sparse, episodes, files
 from .build import check_simplex_features
 from .storage import SimplexFeatureWarning
 from .storage.fields import readonly
@@ -32,7 +32,8 @@ class OfflineDataset:
     """K trajectories of length H, as features of taken and next-state actions.
 
     Build it with :meth:`from_features`, :meth:`from_transitions`,
-    :meth:`from_next_state_table`, :meth:`from_dask`, or open a dataset directory with
+    :meth:`from_next_state_table`, :meth:`from_observations`, :meth:`from_episodes`,
+    :meth:`from_dask`, :meth:`from_sparse_rows`, or open a dataset directory with
     :meth:`open`; do not call the constructor directly. The numbers are stored step-major
     (the engine reads one step at a time, a chunk of trajectories at a time) and exposed
     trajectory-major, as the constructors take them.
@@ -76,6 +77,7 @@ class OfflineDataset:
     from_transitions = classmethod(build_observations.from_transitions)
     from_observations = classmethod(build_observations.from_observations)
     from_episodes = classmethod(episodes.from_episodes)
+    from_sparse_rows = classmethod(build_sparse.from_sparse_rows)
 
     # ------------------------------------------------------------------ views
     @property
@@ -105,7 +107,8 @@ class OfflineDataset:
 
     @property
     def storage(self) -> str:
-        """Where the data lives: ``"memory"``, ``"disk"`` or ``"dask"``."""
+        """Where the data lives: ``"memory"``, ``"disk"``, ``"dask"`` or ``"memory (sparse
+        rows)"``."""
         return self._source.phi.storage
 
     @property
@@ -167,16 +170,7 @@ class OfflineDataset:
         >>> ds.reward_range
         (0.0, 5.0)
         """
-        cached = getattr(self, "_reward_range", None)
-        if cached is None:
-            source = getattr(self, "_source", None)
-            if source is not None:
-                cached = source.reward_bounds()
-            else:  # datasets that keep their rewards themselves (sparse rows): (K, H)
-                r = np.asarray(self.rewards)
-                cached = (float(r.min()), float(r.max()))
-            self._reward_range = cached
-        return cached
+        return self._source.reward_bounds()
 
     @property
     def reward_noise(self) -> float:
@@ -187,8 +181,7 @@ class OfflineDataset:
         and :meth:`open`. ``fit`` checks the rewards against ``[0, r_max]`` up to
         ``8 * reward_noise``: noisy samples of in-range mean rewards leave the range, a
         wrong reward scale does not hide in the noise."""
-        source = getattr(self, "_source", None)
-        return 0.0 if source is None else source.reward_noise
+        return self._source.reward_noise
 
     @property
     def has_known_values(self) -> bool:
@@ -219,13 +212,14 @@ class OfflineDataset:
 
         ``next_values`` is ``(K, A)`` with NaN where learned, or None if none is known.
         ``h`` is 0-based. The whole step is read (the engine reads it in chunks instead).
+        Sparse rows (:meth:`from_sparse_rows`) come as they are stored: ``phi`` a CSR matrix,
+        ``next_phi`` a :class:`~r2pvi.data.storage.sparse_rows.StackedSparse`.
         """
-        src = self._source
-        nv = src.next.known(h) if src.next.has_known_values else None
-        return src.phi_step(h), src.rewards_step(h), src.next.features(h), nv
+        return self._source.step(h)
 
     def step_phi(self, h: int) -> np.ndarray:
-        """Step ``h``'s taken-action features ``(K, d)`` in float64 (a view when stored so)."""
+        """Step ``h``'s taken-action features ``(K, d)`` in float64 (a view when stored so;
+        a CSR matrix for sparse rows)."""
         return self._source.phi_step(h)
 
     def step_times(self, h: int, z) -> np.ndarray:
@@ -274,7 +268,8 @@ class OfflineDataset:
     def __repr__(self) -> str:
         return (
             f"OfflineDataset(K={self.n_trajectories}, H={self.horizon}, d={self.n_features}, "
-            f"A={self.n_actions}, known_values={self.has_known_values})"
+            f"A={self.n_actions}, known_values={self.has_known_values}"
+            f"{self._source.phi.describe()})"
         )
 
     # ------------------------------------------------------------------ I/O (data/files.py)

@@ -40,6 +40,7 @@ import scipy.sparse as sp
 
 from ..features.maps import as_feature_map
 from .build import _check_map_actions, check_simplex_features
+from .build_sparse import sparse_episodes
 
 __all__ = ["Episode", "from_episodes", "episode_observations", "as_episode_list"]
 
@@ -250,7 +251,7 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
     N = len(rews)
     phi_flat = fmap(cur, acts)
     if sp.issparse(phi_flat):  # tile coding, aggregation: sparse rows all the way
-        return _sparse_dataset(phi_flat, fmap, nxt, rews + offset, h_idx, k_idx, absorbing,
+        return sparse_episodes(cls, phi_flat, fmap, nxt, rews + offset, h_idx, k_idx, absorbing,
                                offset, K, H, A, check_simplex)
     phi_flat = _dense(phi_flat, N, "feature_map(observations, actions)")
     d = phi_flat.shape[1]
@@ -293,83 +294,6 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
         next_values.transpose(1, 0, 2), check_simplex=False,
         states=states, actions=actions, next_states=next_states,
     )
-
-
-def _sparse_dataset(phi_flat, fmap, nxt, rewards, h_idx, k_idx, absorbing, offset, K, H, A,
-                    check_simplex):
-    """The :class:`~r2pvi.sparse.SparseOfflineDataset` of episodes whose feature map returns
-    ``scipy.sparse`` rows: the same conventions as the dense path (absorbing values, empty
-    padding rows, padded next states repeating a real one), no row densified."""
-    from ..sparse import SparseOfflineDataset
-
-    N = len(rewards)
-    phi_flat = _sparse_rows(phi_flat, N, "feature_map(observations, actions)")
-    d = phi_flat.shape[1]
-    if check_simplex:
-        check_simplex_features(_row_facts(phi_flat), "feature_map(observations, actions)")
-    nexts = []
-    for a in range(A):
-        out = _sparse_rows(fmap(nxt, np.full(N, a)), N, "feature_map(next observations, "
-                           "actions)", d)
-        if check_simplex:
-            check_simplex_features(_row_facts(out[~absorbing]),
-                                   "feature_map(next observations, a)")
-        nexts.append(out)
-    # Row of each (h, k): its flat transition, or -1 (no data at that step).
-    where = np.full((H, K), -1, dtype=np.int64)
-    where[h_idx, k_idx] = np.arange(N)
-    empty = sp.csr_matrix((0, d))
-    phi, next_phi = [], []
-    next_values = np.full((K, H, A), np.nan)
-    next_values[k_idx[absorbing], h_idx[absorbing]] = (H - h_idx[absorbing] - 1)[:, None] * offset
-    for h in range(H):
-        rows = where[h]
-        real = rows >= 0
-        phi.append(_scatter_rows(phi_flat, rows, K, d, empty))
-        if real.any() and not real.all():  # padding repeats the first real next state
-            first = np.flatnonzero(real)[0]
-            rows = np.where(real, rows, rows[first])
-            next_values[~real, h] = next_values[first, h]
-        inter = [_scatter_rows(x, rows, K, d, empty) for x in nexts]
-        next_phi.append(sp.vstack(inter, format="csr")[
-            (np.arange(A)[None, :] * K + np.arange(K)[:, None]).ravel()])  # row tau * A + a
-    rew = np.zeros((K, H))
-    rew[k_idx, h_idx] = rewards
-    return SparseOfflineDataset.from_rows(phi, rew, next_phi, A, next_values)
-
-
-def _sparse_rows(x, n: int, what: str, d: int | None = None):
-    if not sp.issparse(x):
-        raise TypeError(f"{what} returned dense rows for some calls and sparse for others")
-    m = sp.csr_matrix(x, dtype=float)
-    if m.shape[0] != n or (d is not None and m.shape[1] != d):
-        want = f"({n}, {'d' if d is None else d})"
-        raise ValueError(f"{what} must return {want}, got shape {m.shape}")
-    return m
-
-
-def _scatter_rows(x, rows: np.ndarray, K: int, d: int, empty):
-    """``(K, d)`` CSR whose row ``k`` is ``x[rows[k]]`` (an empty row where ``rows[k] < 0``)."""
-    real = rows >= 0
-    if not real.any():
-        return sp.csr_matrix((K, d))
-    take = x[rows[real]]
-    counts = np.zeros(K, dtype=np.int64)
-    counts[real] = np.diff(take.indptr)
-    indptr = np.concatenate([[0], np.cumsum(counts)])
-    return sp.csr_matrix((take.data, take.indices, indptr), shape=(K, d))
-
-
-def _row_facts(x) -> np.ndarray:
-    """What the simplex check reads of sparse rows, without densifying them: a ``(n, 2)``
-    array with each row's smallest entry (0 when a row has zeros) and the rest of its sum."""
-    x = sp.csr_matrix(x)
-    n = x.shape[0]
-    if n == 0:
-        return np.zeros((0, 2))
-    lo = np.minimum(np.asarray(x.min(axis=1).toarray()).ravel(), 0.0)
-    total = np.asarray(x.sum(axis=1)).ravel()
-    return np.stack([lo, total - lo], axis=1)
 
 
 def _reward_offset(reward_offset, rewards: np.ndarray) -> float:

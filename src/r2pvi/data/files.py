@@ -47,6 +47,12 @@ def save(self, path, *, dtype=None, overwrite: bool = False,
     (['gram.npy', 'manifest.json', 'next_phi.npy', 'phi.npy', 'phi_sums.npy', 'rewards.npy'], 2)
     """
     p = Path(os.fspath(path))
+    if not self._source.dense_rows:  # before any check of the path: nothing is touched
+        raise TypeError(f"cannot save a dataset of sparse rows to {path}: saving sparse rows "
+                        "is not supported (the on-disk format stores dense rows); keep the "
+                        "feature map and the observations, and rebuild it with "
+                        "OfflineDataset.from_episodes or r2pvi.sparse.SparseOfflineDataset"
+                        ".from_transitions")
     next_form = _next_form(next_form)
     if p.suffix == ".npz":
         if next_form != "full":

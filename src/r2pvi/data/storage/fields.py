@@ -78,6 +78,10 @@ class Field:
         """The field of the trajectories ``idx`` (``OfflineDataset.subset``), in memory."""
         raise NotImplementedError
 
+    def describe(self) -> str:
+        """What a dataset's repr adds about the field ("" but for sparse rows)."""
+        return ""
+
     def chunks(self, h: int, chunk: int):
         """``(start, stop, rows)`` over the trajectories of step ``h``."""
         K = self.shape[1]
@@ -116,6 +120,11 @@ class Field:
         for s, e, rows in self.float64_chunks(h, chunk):
             out[s:e] = rows @ z
         return out
+
+    def float64_array(self) -> np.ndarray | None:
+        """The whole field as a C-contiguous float64 ndarray held in memory (so that steps
+        can be pooled as views), or None."""
+        return None
 
     def products(self, h: int, cols, weights=None, with_gram: bool = True):
         """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` formed where the numbers

@@ -43,6 +43,10 @@ class ArrayField(Field):
         np.copyto(out, self.read(h))
         return out
 
+    def float64_array(self):
+        a = self.array
+        return a if a.dtype == np.float64 and a.flags.c_contiguous else None
+
     def times(self, h, z, chunk):
         if self.dtype == np.float64:
             return self.read(h) @ z

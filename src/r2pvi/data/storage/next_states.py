@@ -36,6 +36,11 @@ class NextStates:
         they are stored, else computed (and so materialized)."""
         return np.stack([self.features(h) for h in range(horizon)], axis=1)
 
+    def pooled_view(self, n: int):
+        """``(features (n, A, d), known (n, A) or None)`` of the first ``n`` step-major samples
+        as views of float64 arrays held in memory (pooled steps without a copy), or None."""
+        return None
+
     def find_nonnegative(self, horizon: int, n: int, chunk: int) -> bool:
         """Whether every used next-state feature (steps ``0 .. H-2``) is ``>= 0``, read by
         chunk (:attr:`nonnegative` when known)."""
@@ -95,6 +100,16 @@ class StoredNext(NextStates):
 
     def all_features(self, horizon):
         return self.next_phi.lazy().swapaxes(0, 1)
+
+    def pooled_view(self, n):
+        feats = self.next_phi.float64_array()
+        if feats is None:
+            return None
+        H, K = feats.shape[:2]
+        known = None
+        if self.next_values is not None:
+            known = np.asarray(self.next_values.lazy(), dtype=float).reshape(H * K, -1)[:n]
+        return feats.reshape((H * K,) + feats.shape[2:])[:n], known
 
     def known(self, h, start=0, stop=None):
         return None if self.next_values is None else _as_float64(

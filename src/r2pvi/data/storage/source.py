@@ -12,6 +12,7 @@ from ._finite import (
 )
 from .fields import CHUNK, Field, _as_float64
 from .next_states import NextStates
+from .sparse_rows import stack_rows
 
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
 
@@ -148,6 +149,50 @@ class StepSource:
             self.reward_range = self.rewards.bounds()
         return self.reward_range
 
+    def step(self, h: int):
+        """Step ``h``'s ``(phi (K, d), rewards (K,), next_phi (K, A, d), next_values (K, A) or
+        None)``: the taken-action rows as :meth:`phi_step` gives them (float64, or CSR for
+        sparse rows), the next-state rows as the next-state form gives them (an ndarray, or a
+        :class:`~r2pvi.data.storage.sparse_rows.StackedSparse`)."""
+        nv = self.next.known(h) if self.next.has_known_values else None
+        return self.phi_step(h), self.rewards_step(h), self.next.features(h), nv
+
+    def pooled(self, P: int):
+        """The transitions of steps ``0 .. P-1`` as one: ``(phi (P K, d), rewards (P K,),
+        next_phi (P K, A, d), next_values (P K, A) or None)``, step-major (row ``h K + tau``):
+        views of the stored arrays when they are held in memory as step-major float64 (see
+        :meth:`pooled_views`), else stacked step by step (dense or sparse rows)."""
+        views = self.pooled_views(P)
+        if views is not None:
+            return views
+        steps = [self.step(h) for h in range(P)]
+        if any(s[3] is not None for s in steps):
+            A = self.n_actions
+            known = np.concatenate([
+                np.full((self.n_trajectories, A), np.nan) if s[3] is None else s[3]
+                for s in steps
+            ])
+        else:
+            known = None
+        return (stack_rows([s[0] for s in steps]), np.concatenate([s[1] for s in steps]),
+                stack_rows([s[2] for s in steps]), known)
+
+    def pooled_views(self, P: int):
+        """:meth:`pooled` without a copy of the features when they are held in memory as
+        step-major float64 arrays: ``(H, K, ...)`` reshaped to ``(H K, ...)`` is a view; the
+        first ``P`` steps are a prefix of the rows. None otherwise (files, Dask, float32,
+        computed next features, sparse rows)."""
+        phi = self.phi.float64_array()
+        if phi is None:
+            return None
+        H, K, d = phi.shape
+        n = P * K
+        nxt = self.next.pooled_view(n)
+        if nxt is None:
+            return None
+        rewards = np.asarray(self.rewards.lazy(), dtype=float).reshape(H * K)[:n]
+        return phi.reshape(H * K, d)[:n], rewards, nxt[0], nxt[1]
+
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
 
@@ -166,6 +211,8 @@ class StepSource:
         ``(K, d)``, or the pooled steps' ``(P K, d)`` (step-major) with ``h = None``."""
         from ._finite import nonfinite_error
 
+        if rows is None and "phi" in self.checked:
+            return None  # checked finite when the source was built: the sums overflowed
         origin, K = self.phi.origin("phi"), self.n_trajectories
         if rows is not None:
             hit = first_nonfinite(rows)
