@@ -218,11 +218,14 @@ def from_dask(cls, phi, rewards, next_phi, next_values=None):
     """A dataset held as Dask arrays, chunked along trajectories (the ``dask`` extra).
 
     Takes the shapes of :meth:`from_features` (``phi (K, H, d)``, ...) as Dask arrays;
-    nothing is computed here. Fitting reads one step at a time: the next-state values are
-    computed on the workers, chunk by chunk, and only a step's ``(K, d)`` features and
-    ``K`` values come back. Nothing is checked here: a fit checks every number it uses
-    as it reads it (finite; rewards in ``[0, r_max]``) and names the first bad entry
-    (step, trajectory, feature). Fits equal the in-memory fits to rounding.
+    nothing is computed here. What can be checked without computing is checked as
+    :meth:`from_features` checks it: the types, dimensions and shapes (``K, H, d, A >= 1``,
+    known chunk sizes), real-number dtypes (features of another real type are stored as
+    float64, lazily). Fitting reads one step at a time: the next-state values are computed
+    on the workers, chunk by chunk, and only a step's ``(K, d)`` features and ``K`` values
+    come back; a fit checks every number it uses as it reads it (finite; rewards in
+    ``[0, r_max]``) and names the first bad entry (step, trajectory, feature). Fits equal the
+    in-memory fits to rounding.
     """
     try:
         import dask.array as da
@@ -232,26 +235,53 @@ def from_dask(cls, phi, rewards, next_phi, next_values=None):
     arrays = [phi, rewards, next_phi] + ([] if next_values is None else [next_values])
     for name, a, nd in zip(("phi", "rewards", "next_phi", "next_values"), arrays,
                            (3, 2, 4, 3), strict=False):
-        if not isinstance(a, da.Array):
-            raise TypeError(f"{name} must be a dask.array.Array, got {type(a).__name__}")
-        if a.ndim != nd:
-            raise ValueError(f"{name} must have {nd} dimensions, got shape {a.shape}")
+        _check_dask(a, name, nd, da)
     K, H, d = phi.shape
-    if rewards.shape != (K, H) or next_phi.shape[:2] != (K, H) or next_phi.shape[3] != d:
-        raise ValueError("rewards (K, H) and next_phi (K, H, A, d) must match phi (K, H, d)")
-    if next_values is not None and next_values.shape != next_phi.shape[:3]:
-        raise ValueError("next_values must have shape (K, H, A)")
+    if K == 0:
+        raise ValueError("phi has K = 0 trajectories; a dataset needs at least one")
+    if H == 0 or d == 0:
+        raise ValueError(f"phi must have H >= 1 steps and d >= 1 features, got {(K, H, d)}")
+    if rewards.shape != (K, H):
+        raise ValueError(f"rewards must have shape (K, H) = {(K, H)} to match phi, got "
+                         f"{rewards.shape}")
+    if next_phi.shape[:2] != (K, H) or next_phi.shape[3] != d:
+        raise ValueError(f"next_phi must have shape (K, H, A, d) = ({K}, {H}, A, {d}), got "
+                         f"{next_phi.shape}")
+    A = next_phi.shape[2]
+    if A == 0:
+        raise ValueError("next_phi has A = 0 actions; at least one action is needed")
+    if next_values is not None and next_values.shape != (K, H, A):
+        raise ValueError(f"next_values must have shape (K, H, A) = {(K, H, A)}, got "
+                         f"{next_values.shape}; use NaN where the value must be learned")
     chunks = phi.chunks[0]
 
-    def sm(a):  # step-major, chunked along trajectories like phi, whole on other axes
+    def sm(a, features=False):  # step-major, chunked along trajectories like phi
+        if features and a.dtype not in (np.float32, np.float64):
+            a = a.astype(np.float64)  # as from_features stores other numbers (lazily)
         a = a.rechunk((chunks,) + tuple(-1 for _ in a.shape[1:]))
         return a.swapaxes(0, 1)
 
     nv = None if next_values is None else _st.DaskField(sm(next_values))
-    source = _st.StepSource(_st.DaskField(sm(phi)), _st.DaskField(sm(rewards)),
-                            _st.StoredNext(_st.DaskField(sm(next_phi)), nv))
+    source = _st.StepSource(_st.DaskField(sm(phi, True)), _st.DaskField(sm(rewards)),
+                            _st.StoredNext(_st.DaskField(sm(next_phi, True)), nv))
     return cls(_source=source)
 
+
+def _check_dask(a, name: str, ndim: int, da) -> None:
+    """``a`` is a Dask array of real numbers with ``ndim`` dimensions and known chunk sizes
+    (nothing is computed)."""
+    if not isinstance(a, da.Array):
+        raise TypeError(f"{name} must be a dask.array.Array, got {type(a).__name__}")
+    kind = np.dtype(a.dtype).kind
+    if kind == "c":
+        raise TypeError(f"{name} must be real, got a complex Dask array")
+    if kind not in "biuf":
+        raise TypeError(f"{name} must be a numeric (float) Dask array, got dtype {a.dtype}")
+    if a.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {a.shape}")
+    if any(np.isnan(n) for n in a.shape):
+        raise ValueError(f"{name} has unknown chunk sizes (shape {a.shape}): from_dask computes "
+                         f"nothing; call {name}.compute_chunk_sizes() first")
 
 
 def _check_extras(K, H, A, _owned=(), **given) -> dict:
