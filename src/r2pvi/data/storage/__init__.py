@@ -11,13 +11,21 @@ one range of trajectories at a time, wherever they are:
   each chunk is a view of it, with no copy (the resident memory stays bounded; ``pread`` where
   a file cannot be mapped); :meth:`FileField.read` reads a range with ``pread``,
   :meth:`FileField.lazy` gives a memory map of the whole file for browsing;
-- :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
+- :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra);
+- :class:`SparseRowsField` — sparse rows, one CSR matrix per step (tile coding);
+- :class:`MappedField` — features computed from stored observations by a feature map.
+
+Every kind implements the :class:`Field` protocol: besides the reads, the products a fit
+needs of a step (its rows whole or by chunk, ``Phi_h z``, sums formed where the numbers are),
+so :class:`StepSource` and the engine never ask which kind they hold. A new storage kind is a
+new module with a :class:`Field` subclass (and, if its next-state rows are stored its own
+way, a :class:`NextStates` subclass).
 
 Next-state features are computed where they need not be stored (:class:`StoredNext`,
 :class:`BehaviourNext` for trajectories, whose taken action's row is the next step's
 features, :class:`TableNext` for finite MDPs, :class:`MapNext` for stored observations and a
-feature map), and the engine asks for the next-state values ``V_{h+1}`` chunk by chunk through
-:meth:`StepSource.next_state_values`.
+feature map, :class:`SparseNext` for sparse rows), and the engine asks for the next-state
+values ``V_{h+1}`` chunk by chunk through :meth:`StepSource.next_state_values`.
 
 The on-disk format (format version 2) is a directory::
 
@@ -51,6 +59,7 @@ kind: ``memory`` (:class:`ArrayField`), ``files`` (:class:`FileField`: a file st
 chunk, ``pread`` and a cast or views of memory-mapped windows, ``MAP_WINDOW``),
 ``dask_arrays`` (:class:`DaskField`, products formed on the workers), then the next-state
 forms ``next_states`` (:class:`NextStates`, :class:`StoredNext`, :class:`TableNext`),
+``sparse_rows`` (:class:`SparseRowsField`, :class:`SparseNext`: one CSR matrix per step),
 ``observations`` (:class:`MappedField`, :class:`MapNext`), ``format`` (manifest names, atomic
 directories), ``behaviour`` (the behaviour form, ``SIDE_BLOCK``), ``source``
 (:class:`StepSource`), ``checks`` (validation), ``manifest`` (what an open checks),
@@ -88,6 +97,7 @@ from .memory import ArrayField
 from .next_states import NextStates, StoredNext, TableNext
 from .observations import MapNext, MappedField
 from .source import GRAM_CACHE_MAX_D, StepSource  # noqa: F401
+from .sparse_rows import SparseNext, SparseRowsField, StackedSparse
 from .writer import DatasetWriter
 
 __all__ = [
@@ -105,6 +115,9 @@ __all__ = [
     "TableNext",
     "MapNext",
     "MappedField",
+    "SparseRowsField",
+    "SparseNext",
+    "StackedSparse",
     "StepSource",
     "DatasetWriter",
     "SimplexFeatureWarning",

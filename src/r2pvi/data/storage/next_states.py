@@ -42,7 +42,7 @@ class NextStates:
         return None
 
     def find_nonnegative(self, horizon: int, n: int, chunk: int) -> bool:
-        """Whether every used next-state feature (steps ``0 .. H-2``) is ``>= 0``, read by
+        """Whether every used next-state feature (steps 0 to H-2) is ``>= 0``, read by
         chunk (:attr:`nonnegative` when known)."""
         return all(bool((self.features(h, s, min(s + chunk, n)) >= 0).all())
                    for h in range(horizon - 1) for s in range(0, n, chunk))

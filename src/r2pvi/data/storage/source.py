@@ -158,7 +158,7 @@ class StepSource:
         return self.phi_step(h), self.rewards_step(h), self.next.features(h), nv
 
     def pooled(self, P: int):
-        """The transitions of steps ``0 .. P-1`` as one: ``(phi (P K, d), rewards (P K,),
+        """The transitions of steps 0 to P-1 as one: ``(phi (P K, d), rewards (P K,),
         next_phi (P K, A, d), next_values (P K, A) or None)``, step-major (row ``h K + tau``):
         views of the stored arrays when they are held in memory as step-major float64 (see
         :meth:`pooled_views`), else stacked step by step (dense or sparse rows)."""
