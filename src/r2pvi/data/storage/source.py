@@ -29,7 +29,7 @@ class StepSource:
 
     ``checked`` names the fields (``"phi"``, ``"rewards"``, ``"next"``) whose every number
     was checked when the source was built (finite; the rewards' range taken); a fit checks
-    the others as it reads them (``storage._finite``). Stored ``grams`` and ``sums`` are
+    the others as it reads them (``data.storage._finite``). Stored ``grams`` and ``sums`` are
     checked here (``H d^2`` numbers); ``stored_files`` maps ``"gram"`` and ``"phi_sums"`` to
     the files they were read from, for the errors; ``range_recorded`` says that
     ``reward_range`` is what a directory's manifest records (named by the errors).
@@ -65,7 +65,7 @@ class StepSource:
         self.extras = dict(extras or {})
         self.nonnegative_phi = nonnegative_phi
         # True when validation found every taken-action row summing to 1 (within
-        # storage._checks.UNIT_ROW_ATOL): then Phi^T W 1 = Phi^T W Phi 1_d, the Gram
+        # storage.checks.UNIT_ROW_ATOL): then Phi^T W 1 = Phi^T W Phi 1_d, the Gram
         # matrix's row sums, and E(1) needs no pass of its own.
         self.unit_rows = bool(unit_rows)
         # (low, high) of the taken-action rows' sums when known (validation, or a directory's
