@@ -34,7 +34,7 @@ import numpy as np
 import r2pvi
 from r2pvi._threads import limit_blas
 from r2pvi.algorithms import DRPVI, DRVIL
-from r2pvi.duals.operators import RidgeExpectation, cholesky_gram
+from r2pvi.duals import RidgeExpectation, cholesky_gram
 
 
 def make_dataset(K, H, d, A=2, seed=0, package=r2pvi):
@@ -53,7 +53,7 @@ def floor_fit(ds, gamma=1.0, package=None):
     if package is None:
         ridge, gram, blas = RidgeExpectation, cholesky_gram, limit_blas
     else:
-        ops = importlib.import_module(package.__name__ + ".duals.operators")
+        ops = importlib.import_module(package.__name__ + ".duals")  # every version's names
         ridge, gram = ops.RidgeExpectation, ops.cholesky_gram
         blas = importlib.import_module(package.__name__ + "._threads").limit_blas
     with blas():

@@ -312,7 +312,7 @@ def solvers_case(Ks=(300, 1000, 3000), step=100):
 def _solvers_at(phi, y, label):
     import scipy.sparse.linalg as spl
 
-    from r2pvi.duals.operators import GramFactor
+    from r2pvi.duals import GramFactor
 
     d = phi.shape[1]
     used = np.unique(phi.indices)

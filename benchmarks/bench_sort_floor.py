@@ -29,10 +29,11 @@ from bench_fit import estimators, floor_fit, forget_grams, make_dataset
 from r2pvi._threads import limit_blas
 from r2pvi.algorithms.drpvi import TVBallRule
 from r2pvi.algorithms.r2pvi import Chi2Rule
-from r2pvi.duals import operators
-from r2pvi.duals.operators import RidgeExpectation, SortedBlocks, fine_blocks, group_sums
+from r2pvi.duals import RidgeExpectation
+from r2pvi.duals import operator as operator_module
+from r2pvi.duals.sorting import SortedBlocks, fine_blocks, group_sums
 
-_SORT = operators.sort_breakpoints
+_SORT = operator_module.sort_breakpoints
 _BLOCKS = RidgeExpectation.sorted_blocks
 _RULES = {rule: rule.__call__ for rule in (Chi2Rule, TVBallRule)}
 
@@ -96,7 +97,7 @@ class Given:
                 return given.cache[k].copy()
             return call
 
-        operators.sort_breakpoints = sort_breakpoints
+        operator_module.sort_breakpoints = sort_breakpoints
         RidgeExpectation.sorted_blocks = sorted_blocks
         for rule_cls in _RULES:
             rule_cls.__call__ = rule_call(rule_cls)

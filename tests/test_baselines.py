@@ -251,34 +251,43 @@ def test_constant_variance_reaches_gram_targets_and_penalty(cls, c):
 
 def test_variance_weights_follow_the_formula_from_the_first_pass():
     """sigma_h^2 = max{1, [phi^T z2]_[0,H^2] - ([phi^T z1]_[0,H])^2}, with z1, z2 ridge
-    regressions of V_{h+1}, V_{h+1}^2 (computed here from the first pass's public values and
-    explicit Gram matrices), and the second pass run with 1 / sigma^2."""
-    H = 6
-    # nearly one-hot features and rewards up to 3: values spread enough for variances > 1
-    r_max = 3.0
-    ds, theta, next_phi = dirichlet_dataset(K=300, H=H, seed=5, conc=0.1, r_scale=r_max)
+    regressions of U, U^2, U = V_{h+1} / r_max (in units of r_max; computed here from the first
+    pass's next-state values and explicit Gram matrices), and the second pass run with
+    1 / sigma^2."""
+    H, K, d, r_max = 6, 300, 4, 3.0
+    rng = np.random.default_rng(5)
+    phi = rng.dirichlet(np.full(d, 0.1), size=(K, H))
+    next_phi = rng.dirichlet(np.full(d, 0.1), size=(K, H, 2))
+    theta = np.full((H, d), r_max)
+    # a zero-value fail state, reached with a probability that depends on factor 0: next
+    # values 0 or about (H - h - 1) r_max, variances (in units of r_max) well above 1
+    fail = rng.random((K, H)) < 0.1 + 0.8 * phi[..., 0]
+    next_values = np.where(fail[..., None], 0.0, np.nan).repeat(2, axis=2)
+    ds = OfflineDataset.from_features(phi, np.einsum("khd,hd->kh", phi, theta), next_phi,
+                                      next_values)
     gamma, beta, rho = 0.7, 0.05, 0.1
     kw = {"beta": beta, "gamma": gamma, "reward_weights": theta, "r_max": r_max}
     first = DRPVI(rho, **kw).fit(ds)
-    top = H * r_max
+    rule = TVBallRule(np.full((H, d), rho), "data")
+    first_model = backward_induction(ds, rule, beta=beta, gamma=gamma, penalty="l1",
+                                     r_max=r_max, reward_weights=theta, value_moments=True)
+    np.testing.assert_array_equal(first_model.weights, first.weights_)
+    top = H  # in units of r_max
     weights = np.ones((H, ds.n_trajectories))
     for h in range(H - 1):
-        phi = ds.phi[:, h]
-        v = first.values(next_phi[:, h], h + 1)
-        gram = phi.T @ phi + gamma * np.eye(phi.shape[1])
-        z1, z2 = np.linalg.solve(gram, phi.T @ v), np.linalg.solve(gram, phi.T @ v**2)
-        var = np.clip(phi @ z2, 0, top**2) - np.clip(phi @ z1, 0, top) ** 2
+        p = ds.phi[:, h]
+        v = first_model.next_state_values[h] / r_max
+        gram = p.T @ p + gamma * np.eye(d)
+        z1, z2 = np.linalg.solve(gram, p.T @ v), np.linalg.solve(gram, p.T @ v**2)
+        var = np.clip(p @ z2, 0, top**2) - np.clip(p @ z1, 0, top) ** 2
         weights[h] = 1.0 / np.maximum(1.0, var)
     assert weights.min() < 0.9  # the variance exceeds 1 here: the weighting is active
     va = DRPVI(rho, variance_aware=True, **kw).fit(ds)
-    rule = TVBallRule(np.full((H, 4), rho), "data")
     model = backward_induction(ds, rule, beta=beta, gamma=gamma, penalty="l1", r_max=r_max,
                                reward_weights=theta, sample_weights=weights)
     np.testing.assert_allclose(va.weights_, model.weights, atol=1e-10)
     assert not np.allclose(va.weights_, first.weights_)
     # the library's helper computes the same weights from the first pass's fitted model
-    first_model = backward_induction(ds, rule, beta=beta, gamma=gamma, penalty="l1",
-                                     r_max=r_max, reward_weights=theta, value_moments=True)
     np.testing.assert_allclose(variance_weights(ds, first_model, top), weights, rtol=1e-10)
 
 

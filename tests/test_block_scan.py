@@ -11,18 +11,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from r2pvi.duals import RidgeExpectation, chi2_regularized, cholesky_gram
-from r2pvi.duals.operators import (
-    BLOCK,
-    ExpectationOperator,
-    fine_blocks,
-    sort_breakpoints,
-    sort_order,
-)
+from r2pvi.duals import ExpectationOperator, RidgeExpectation, chi2_regularized, cholesky_gram
+from r2pvi.duals.blockscan import BlockScan, _running_sums
 from r2pvi.duals.piecewise import (
-    BlockScan,
     _chi2_block_bounds,
-    _running_sums,
     blockwise_max,
     chi2_objective,
     dense_max,
@@ -30,6 +22,7 @@ from r2pvi.duals.piecewise import (
     tv_ball_max,
 )
 from r2pvi.duals.ranges import value_extent
+from r2pvi.duals.sorting import BLOCK, fine_blocks, sort_breakpoints, sort_order
 
 
 def ridge_case(seed, n, d, *, signed, weighted, zero_mass, scale, negative, ties):

@@ -16,7 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from r2pvi.duals import FactorExpectation, RidgeExpectation, cholesky_gram, kl_constrained
-from r2pvi.duals import constrained as C
+from r2pvi.duals import _kl_ball as C
+from r2pvi.duals import _kl_series as S
 
 
 def ridge_operator(seed, n, d, signed, ties, zero_mass, scale):
@@ -74,7 +75,7 @@ def test_series_evaluation_equals_the_exact_evaluation(case, log_rho, log_b, see
     idx = np.arange(d)
     # within the node's radius, on both sides, and far from it (new nodes or exact)
     # b >> max|V| (offset 14) takes the exact form, accurate for large b
-    for offset in (0.0, C._SERIES_RADIUS, -C._SERIES_RADIUS, 0.5 * C._SERIES_RADIUS, 0.7, -1.3,
+    for offset in (0.0, S._SERIES_RADIUS, -S._SERIES_RADIUS, 0.5 * S._SERIES_RADIUS, 0.7, -1.3,
                    14.0):
         b = np.exp(t0 + offset + 1e-3 * rng.uniform(-1, 1, size=d) * (abs(offset) < 0.5))
         got = prob.per_factor(idx, b)
@@ -90,14 +91,14 @@ def test_series_order_meets_its_truncation_bound(x_max):
     """The chosen order's series reproduces exp(-x (1 + beta)) on [0, x_max] to the bound
     (``_SERIES_TOL`` per unit weight) plus rounding, at the edge of the radius
     (beta = e^{+-R} - 1); half the order does not."""
-    order = C._series_order(x_max)
-    assert 0 <= order <= C._SERIES_ORDER
+    order = S._series_order(x_max)
+    assert 0 <= order <= S._SERIES_ORDER
     x = np.linspace(0.0, x_max, 2001)
-    k = np.arange(C._SERIES_ORDER + 1)
+    k = np.arange(S._SERIES_ORDER + 1)
     terms = np.exp(k[None, :] * np.log(np.maximum(x, 1e-300))[:, None]
                    - np.array([math.lgamma(i + 1) for i in k])[None, :])
     terms[:, 0] = 1.0
-    for beta in (math.expm1(C._SERIES_RADIUS), math.expm1(-C._SERIES_RADIUS)):
+    for beta in (math.expm1(S._SERIES_RADIUS), math.expm1(-S._SERIES_RADIUS)):
         powers = (-beta) ** k
         exact = np.exp(-x * (1.0 + beta))
 
@@ -105,7 +106,7 @@ def test_series_order_meets_its_truncation_bound(x_max):
             return np.exp(-x) * (terms[:, :n + 1] * powers[:n + 1]).sum(axis=1)
 
         # the bound (1e-17 per unit weight) plus the rounding of the sum
-        tol = C._SERIES_TOL + 2e-15 * np.exp(-x * (1.0 - abs(beta)))
+        tol = S._SERIES_TOL + 2e-15 * np.exp(-x * (1.0 - abs(beta)))
         assert np.all(np.abs(series(order) - exact) <= tol)
         if x_max >= 1.0:  # the check can fail: half the order is far off
             assert np.any(np.abs(series(order // 2) - exact) > 100 * tol)
@@ -218,14 +219,14 @@ def _hermite_full(t0, t1, g0, d0, dd0, g1, d1, dd1, iters=12):
     """The quintic maximizer with every Newton iteration run (no early stop on cycles)."""
     h = t1 - t0
     with np.errstate(all="ignore"):
-        c1, c2, c3, c4, c5 = C._quintic_coefficients(t0, t1, g0, d0, dd0, g1, d1, dd1)
+        c1, c2, c3, c4, c5 = S._quintic_coefficients(t0, t1, g0, d0, dd0, g1, d1, dd1)
 
         def quintic(x):
             return g0 + x * (c1 + x * (c2 + x * (c3 + x * (c4 + x * c5))))
 
-        grid = [quintic(np.full_like(t0, x)) for x in C._HERMITE_GRID]
+        grid = [quintic(np.full_like(t0, x)) for x in S._HERMITE_GRID]
         j = np.argmax(np.stack(grid, axis=1), axis=1)  # start at the best grid point
-        s = C._HERMITE_GRID[j]
+        s = S._HERMITE_GRID[j]
         best = np.stack(grid, axis=1)[np.arange(j.size), j]
         for _ in range(iters):
             p1 = c1 + s * (2.0 * c2 + s * (3.0 * c3 + s * (4.0 * c4 + s * 5.0 * c5)))
@@ -253,7 +254,7 @@ def test_hermite_argmax_stops_on_cycles_where_the_full_iteration_ends(seed, scal
     t0 = rng.normal(size=m)
     t1 = t0 + rng.uniform(0.0, 1.0, size=m)
     args = [scale * rng.normal(size=m) for _ in range(6)]
-    got = C._hermite_argmax(t0, t1, *args)
+    got = S._hermite_argmax(t0, t1, *args)
     want = _hermite_full(t0, t1, *args)
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     # the hoisted coefficients round differently: a starting point, ~1e-12 off
@@ -263,14 +264,14 @@ def test_hermite_argmax_stops_on_cycles_where_the_full_iteration_ends(seed, scal
 def test_cheb_matrix_gives_numpys_chebyshev_interpolant():
     """``_CHEB_MATRIX @ f(_CHEB_S)`` are the coefficients of the interpolant at the Chebyshev
     points of the first kind, as ``numpy.polynomial.chebyshev.chebinterpolate`` computes them."""
-    for x in (0.5, 4.0, C._CHEB_X):
+    for x in (0.5, 4.0, S._CHEB_X):
         def f(s, x=x):
             return np.exp(-0.5 * x * (s + 1.0))
-        want = np.polynomial.chebyshev.chebinterpolate(f, C._CHEB_TERMS - 1)
-        np.testing.assert_allclose(C._CHEB_MATRIX @ f(C._CHEB_S), want, rtol=0, atol=1e-14)
+        want = np.polynomial.chebyshev.chebinterpolate(f, S._CHEB_TERMS - 1)
+        np.testing.assert_allclose(S._CHEB_MATRIX @ f(S._CHEB_S), want, rtol=0, atol=1e-14)
 
 
-@pytest.mark.parametrize("x_cap", [0.3, 2.0, 9.0, C._CHEB_X, 40.0])
+@pytest.mark.parametrize("x_cap", [0.3, 2.0, 9.0, S._CHEB_X, 40.0])
 def test_cheb_terms_meet_their_interpolation_bound(x_cap):
     """The interpolant at ``_cheb_terms(x_cap)`` Chebyshev points reproduces ``y^j exp(-y/b)``
     (j = 0, 1, 2) on [0, 1] within ``tol b^j max(1, x)^j`` at the range's edge ``b = 1/x_cap``
@@ -279,7 +280,7 @@ def test_cheb_terms_meet_their_interpolation_bound(x_cap):
     if np.finfo(np.longdouble).eps > 1e-18:
         pytest.skip("needs an extended-precision long double (x86)")
     tol = 1e-17
-    m = C._cheb_terms(x_cap, tol)
+    m = S._cheb_terms(x_cap, tol)
     pi = np.longdouble("3.14159265358979323846264338327950288")
     y_dense = np.linspace(np.longdouble(0), np.longdouble(1), 4001)
 

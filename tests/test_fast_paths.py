@@ -10,10 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from r2pvi.duals import RidgeExpectation, cholesky_gram, kl_constrained, kl_regularized
+from r2pvi.duals._kl_series import _hermite_argmax
 from r2pvi.duals._scratch import buffer, release
-from r2pvi.duals.constrained import _hermite_argmax
-from r2pvi.duals.operators import BLOCK
-from r2pvi.duals.piecewise import BlockScan
+from r2pvi.duals.blockscan import BlockScan
+from r2pvi.duals.sorting import BLOCK
 
 
 def ridge(seed, n, d, signed=True):

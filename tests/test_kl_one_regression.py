@@ -18,8 +18,7 @@ from hypothesis import strategies as st
 
 import r2pvi
 from r2pvi import OfflineDataset
-from r2pvi.duals import kl_regularized
-from r2pvi.duals.operators import ExpectationOperator, RidgeExpectation, cholesky_gram
+from r2pvi.duals import ExpectationOperator, RidgeExpectation, cholesky_gram, kl_regularized
 from r2pvi.engine import ChunkedRidgeExpectation
 
 EPS = 2.0**-53
@@ -109,7 +108,7 @@ def test_total_weights_is_the_regression_of_ones_for_every_operator_form():
     w = rng.uniform(0.1, 2.0, size=50)
     for weights in (None, w):
         for form in ("primal", "dual"):
-            from r2pvi.duals.operators import GramFactor
+            from r2pvi.duals import GramFactor
 
             E = RidgeExpectation(phi, GramFactor(phi, 0.5, weights, form), weights)
             xw = phi if weights is None else phi * weights[:, None]

@@ -11,13 +11,8 @@ import r2pvi.engine as engine
 from r2pvi import PEVI, R2PVI, OfflineDataset, load
 from r2pvi._io import save_npz
 from r2pvi.algorithms import DRPVI, DRVIL
-from r2pvi.duals import FactorExpectation, tv_constrained
-from r2pvi.duals.operators import (
-    GramFactor,
-    RidgeExpectation,
-    _sparse_column_quadratic,
-    choose_form,
-)
+from r2pvi.duals import FactorExpectation, GramFactor, RidgeExpectation, choose_form, tv_constrained
+from r2pvi.duals._sparse_rows import _sparse_column_quadratic
 from r2pvi.sparse import SparseOfflineDataset, StackedSparse
 
 # ----------------------------------------------------------------------------- helpers

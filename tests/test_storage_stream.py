@@ -1,7 +1,7 @@
 """The streaming engine: a step's Gram matrix and regressions accumulated by chunk.
 
 The truth is the engine's full path (the step's (K, d) features in memory, one Gram product,
-the ridge operator of :mod:`r2pvi.duals.operators`) and brute-force normal equations; the
+the ridge operator of :mod:`r2pvi.duals.operator`) and brute-force normal equations; the
 chunked path must give the same fits to 1e-10, read each step's features as few times as
 the rule allows, and never hold a step's (K, d) features for TV, KL and PEVI.
 """

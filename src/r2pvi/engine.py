@@ -34,13 +34,8 @@ from .data import OfflineDataset
 from .data.storage._finite import FIELDS, NonFiniteRows, check_next_products
 from .data.storage.sparse_rows import flat_rows
 from .duals._scratch import release
-from .duals.operators import (
-    GramFactor,
-    GramMatrixError,
-    RidgeExpectation,
-    choose_form,
-    ridge_cholesky,
-)
+from .duals.gram import GramFactor, GramMatrixError, choose_form, ridge_cholesky
+from .duals.operator import RidgeExpectation
 
 __all__ = [
     "StepRule",
@@ -108,8 +103,9 @@ class FittedModel:
         fit so that acting never factors a matrix. None when the penalty does not need it.
         With ``time_homogeneous`` every entry is the same object.
     next_state_values : (H, n) ``V_{h+1}`` at the sampled next states (0 at ``h = H-1``)
-    value_moments : (H, d, 2) ``E_h([V_{h+1}, V_{h+1}^2])``, the ridge estimates of the first
-        two moments of the next-step value under step h's operator (variance-aware variants)
+    value_moments : (H, d, 2) ``E_h([U, U^2])``, ``U = V_{h+1} / r_max``: the ridge estimates
+        of the first two moments of the next-step value, in units of ``r_max`` (finite for any
+        finite ``r_max``), under step h's operator (variance-aware variants)
     """
 
     weights: np.ndarray
@@ -349,6 +345,16 @@ class ChunkedRidgeExpectation(RidgeExpectation):
             self._want_sums = True  # accumulated with E(y) if not known
         return self(y), self.total_weights()
 
+    def pair_with_total_weights(self, y1: np.ndarray, y2: np.ndarray):
+        """``(E(y1), E(y2), E(1))`` in one read of the step's features (``E(1)`` from the
+        column sums: known, or accumulated in the same read)."""
+        if self._rows is not None:
+            return super().pair_with_total_weights(y1, y2)
+        if not any(y2 is p for p in self._pending):
+            self.include(y2)
+        e1, s = self.with_total_weights(y1)
+        return e1, self(y2), s
+
     def include(self, y: np.ndarray) -> None:
         """Register ``y (n,)`` or ``(n, m)``: its product ``Phi^T W y`` is accumulated with
         the next pass, and ``E(y)`` (the same array object) then costs no read."""
@@ -558,8 +564,8 @@ def backward_induction(
         Factorization of each Gram matrix (see :class:`~r2pvi.duals.GramFactor`); "auto"
         takes the cheaper from the shapes.
     value_moments : bool, default False
-        Also store ``E_h([V_{h+1}, V_{h+1}^2])`` (``FittedModel.value_moments``), which the
-        variance-aware variants' first pass needs; two more regressions per step.
+        Also store ``E_h([U, U^2])``, ``U = V_{h+1} / r_max`` (``FittedModel.value_moments``),
+        which the variance-aware variants' first pass needs; two more regressions per step.
     """
     H, d = dataset.horizon, dataset.n_features
     # The step-major data (memory, files, Dask arrays, sparse rows, observations): the engine
@@ -639,11 +645,12 @@ def backward_induction(
                     else:  # written in place: no K-sized temporary
                         v_next = source.next_state_values(h, qmax, out=next_state_values[h])
                     if value_moments:  # only the variance-aware variants need them
+                        unit_v = v_next / r_max  # in units of r_max: U^2 never overflows
                         if chunked:
-                            both = np.stack([v_next, v_next * v_next], axis=1)
+                            both = np.stack([unit_v, unit_v * unit_v], axis=1)
                             E.include(both)
                         else:
-                            moments[h] = np.stack([E(v_next), E(v_next * v_next)], axis=1)
+                            moments[h] = np.stack([E(unit_v), E(unit_v * unit_v)], axis=1)
                     w = _apply_rule(rule, E, factor, v_next, StepContext(h, H, r_max, v_upper))
                     if value_moments and chunked:
                         moments[h] = E(both)

@@ -1,19 +1,22 @@
-"""The saved model file: its format version, the registry of estimator classes, and loading
-(``r2pvi.load``) with every field of the file checked, ranges included; a bad file is a
-``ValueError`` naming the file and the field."""
+"""The saved model file: its format version, the registry of estimator classes, the packing of
+the fitted state into arrays and a JSON header (``save``), and loading (``r2pvi.load``) with
+every field of the file checked, ranges included; a bad file is a ``ValueError`` naming the
+file and the field."""
 
 from __future__ import annotations
+
+import numbers
 
 import numpy as np
 import scipy.sparse as sp
 
 from .._io import file_array, file_error, load_npz
 from .._validation import check_choice, check_scalar, plain
-from ..duals.fdivergence import get_divergence
-from ..duals.operators import _SparseProduct, _UsedFeaturesFactor
+from ..duals._sparse_rows import _SparseProduct, _UsedFeaturesFactor
+from ..duals.fdivergence import FDivergence, get_divergence
 from ..engine import FittedModel
 
-# Version 2 (issue 14): no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
+# Version 2: no (H, d, d) Cholesky factors; the elliptical penalty's fitted factors
 # ``elliptical_r`` (G, r, d) and ``elliptical_c`` (G, 2) with ``elliptical_index`` (H,) when
 # the penalty is "elliptical". Version 1 files (with ``gram_cholesky_``) still load.
 # Version 3: header ``elliptical_kinds`` (one of "dense", "sparse", "used" per distinct factor)
@@ -27,6 +30,82 @@ MODEL_FORMAT_VERSION = 3
 # model file names its class, and loading dispatches on it.
 ESTIMATOR_REGISTRY: dict[str, type] = {}
 ELLIPTICAL_KINDS = ("dense", "sparse", "used")
+
+
+def _jsonable(name, value):
+    if isinstance(value, FDivergence):
+        spec = value.params
+        try:
+            ok = bool(spec) and get_divergence(spec) == value
+        except (TypeError, ValueError, KeyError):
+            ok = False
+        if not ok:
+            raise TypeError(
+                f"cannot save parameter {name}={value!r}: a custom FDivergence has code, which "
+                "is never pickled; use a built-in divergence or save the weights_ yourself"
+            )
+        return {"__divergence__": spec}
+    if value is None or isinstance(value, bool | str):
+        return value if not isinstance(value, str) else str(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        return float(value)
+    raise TypeError(f"cannot save parameter {name}={value!r} of type {type(value).__name__}")
+
+
+def _pack_elliptical(factors: list) -> tuple[list[int], dict, list[str]]:
+    """Distinct per-step elliptical factors as arrays: ``(index (H,), arrays, kinds (G,))``.
+
+    ``elliptical_c (G, 2)`` for every factor; by kind, in the order of ``kinds``: "dense"
+    ``elliptical_r``, "sparse" (sparse-row dual form) ``elliptical_cinv`` and ``Psi``'s CSR
+    pieces, "used" (sparse-row primal form) ``L_U^{-1}`` and ``U``, ragged. Pooled steps share
+    one factor (G = 1); sparse rows may mix the two sparse kinds across steps."""
+    seen: dict[int, int] = {}
+    index, distinct = [], []
+    for factor in factors:
+        key = id(factor[0])
+        if key not in seen:
+            seen[key] = len(distinct)
+            distinct.append(factor)
+        index.append(seen[key])
+    kinds = []
+    for r, _, _ in distinct:
+        if isinstance(r, np.ndarray):
+            kinds.append("dense")
+        elif isinstance(r, _SparseProduct):
+            kinds.append("sparse")
+        elif isinstance(r, _UsedFeaturesFactor):
+            kinds.append("used")
+        else:  # pragma: no cover - the engine makes only these
+            raise TypeError(f"cannot save an elliptical factor of type {type(r).__name__}")
+    # "used" factors have c0 = 0, c1 = 1; their first column carries 1 / gamma instead.
+    arrays = {"elliptical_c": np.array([[1.0 / r.gamma, 1.0] if k == "used" else [c0, c1]
+                                        for (r, c0, c1), k in zip(distinct, kinds,
+                                                                  strict=True)])}
+    of = {k: [r for (r, _, _), kk in zip(distinct, kinds, strict=True) if kk == k]
+          for k in ELLIPTICAL_KINDS}
+    if of["dense"]:
+        if len({r.shape for r in of["dense"]}) != 1:
+            raise TypeError("cannot save dense elliptical factors of different shapes")
+        arrays["elliptical_r"] = np.stack(of["dense"])
+    if of["sparse"]:
+        if len({r.cinv.shape for r in of["sparse"]}) != 1:
+            raise TypeError("cannot save sparse elliptical factors of different sizes")
+        psis = [r.psi for r in of["sparse"]]
+        arrays["elliptical_cinv"] = np.stack([r.cinv for r in of["sparse"]])
+        arrays["elliptical_psi_data"] = np.concatenate([p.data for p in psis]).astype(float)
+        arrays["elliptical_psi_indices"] = np.concatenate(
+            [p.indices for p in psis]).astype(np.int64)
+        arrays["elliptical_psi_indptr"] = np.stack([p.indptr for p in psis]).astype(np.int64)
+    if of["used"]:
+        used = of["used"]
+        arrays["elliptical_sizes"] = np.array([r.cols.size for r in used], dtype=np.int64)
+        arrays["elliptical_cols"] = np.concatenate([r.cols for r in used]).astype(np.int64)
+        arrays["elliptical_linv_data"] = np.concatenate([r.linv.ravel() for r in used])
+    return index, arrays, kinds
 
 
 class _Shape:

@@ -22,10 +22,14 @@ def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float
     """Regression weights ``1 / sigma_h^2(s_h^tau, a_h^tau)``, shape (H, K).
 
     ``sigma_h^2 = max{1, [phi^T z2]_{[0, v_upper^2]} - ([phi^T z1]_{[0, v_upper]})^2}``
-    (Liu & Xu 2024, variance estimator of VA-DRPVI), with ``z1``, ``z2`` the ridge estimates
-    of ``V_{h+1}`` and ``V_{h+1}^2`` under the first pass's Gram matrix ``Lambda_h`` and
-    ``v_upper = H r_max`` the value bound (the paper's ``H``). At ``h = H-1``, ``V_H = 0``
-    and ``sigma^2 = 1``.
+    (Liu & Xu 2024, variance estimator of VA-DRPVI), in units of ``r_max``: ``z1``, ``z2``
+    are the ridge estimates of ``U = V_{h+1} / r_max`` and ``U^2`` under the first pass's
+    Gram matrix ``Lambda_h`` (``FittedModel.value_moments``) and ``v_upper = H`` the value
+    bound in those units (the paper's ``H``, rewards in ``[0, 1]``). So the weights are
+    dimensionless: scaling the rewards and ``r_max`` leaves them unchanged, and they are
+    finite for any finite ``r_max`` (the squares of the values themselves overflow from
+    ``r_max`` ~ 1e154 on). At ``r_max = 1`` this is the formula in the values' own units.
+    At ``h = H-1``, ``V_H = 0`` and ``sigma^2 = 1``.
 
     Examples
     --------
@@ -38,7 +42,7 @@ def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float
     >>> ds = OfflineDataset.from_features(phi, phi[..., 0], rng.dirichlet(np.ones(3), (40, 4, 2)))
     >>> first = backward_induction(ds, RidgeRule(), beta=0.0, gamma=1.0, penalty="l1", r_max=1.0,
     ...                            value_moments=True)
-    >>> w = variance_weights(ds, first, v_upper=4.0)
+    >>> w = variance_weights(ds, first, v_upper=4.0)  # H = 4 (in units of r_max)
     >>> w.shape, bool(np.all((w > 0) & (w <= 1))), bool(np.all(w[-1] == 1))
     ((4, 40), True, True)
     """
@@ -51,7 +55,7 @@ def variance_weights(dataset: OfflineDataset, first: FittedModel, v_upper: float
     P = pooled_steps(H)  # pooled rows: steps 0 .. P-1 (P = 1: step 0's rows, as per step)
     pooled = stack_rows([dataset.step(h)[0] for h in range(P)]) if n != K else None
     for h in range(H - 1):  # V_H = 0: sigma_{H-1}^2 = max(1, 0) = 1
-        z = first.value_moments[h]  # (d, 2): ridge estimates of V_{h+1} and V_{h+1}^2
+        z = first.value_moments[h]  # (d, 2): ridge estimates of U and U^2, U = V_{h+1}/r_max
         pred = np.asarray(dataset.step_times(h, z) if pooled is None else pooled @ z)
         mean = np.clip(pred[:, 0], 0.0, v_upper)
         second = np.clip(pred[:, 1], 0.0, v_upper * v_upper)
@@ -68,7 +72,7 @@ class VarianceAwareMixin:
     """
 
     def _sample_weights(self, dataset: OfflineDataset, first: FittedModel, params: dict):
-        return variance_weights(dataset, first, dataset.horizon * params["r_max"])
+        return variance_weights(dataset, first, float(dataset.horizon))  # units of r_max
 
     def _fit_model(self, dataset: OfflineDataset, params: dict) -> FittedModel:
         if not params.get("variance_aware", False):

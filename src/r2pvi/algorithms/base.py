@@ -7,7 +7,6 @@ validates them and returns ``self``, fitted attributes end with ``_``, and
 
 from __future__ import annotations
 
-import contextlib
 import inspect
 import numbers
 
@@ -18,13 +17,18 @@ from .._io import save_npz
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
-from ..data.storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
-from ..duals.operators import GramFactor, GramMatrixError, _SparseProduct, _UsedFeaturesFactor
+from ..duals.gram import GramFactor, GramMatrixError
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
-from ._model_file import ELLIPTICAL_KINDS as _ELLIPTICAL_KINDS
-from ._model_file import ESTIMATOR_REGISTRY, MODEL_FORMAT_VERSION, load_model
+from ._model_file import (
+    ESTIMATOR_REGISTRY,
+    MODEL_FORMAT_VERSION,
+    _jsonable,
+    _pack_elliptical,
+    load_model,
+)
+from ._reward_range import check_reward_range
 
-__all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY", "check_reward_range"]
+__all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
 
 _FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
 
@@ -107,7 +111,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
 
     # ------------------------------------------------------------------ fitting
     def _time_homogeneous(self) -> bool:
-        # --- time_homogeneous (issue 14/11): pooled steps, one Gram matrix for all steps
+        # time_homogeneous: pooled steps, one Gram matrix for all steps
         value = getattr(self, "time_homogeneous", False)
         if not isinstance(value, bool | np.bool_):
             raise TypeError(f"time_homogeneous must be True or False, got {plain(value)!r}")
@@ -276,135 +280,6 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         return est
 
 
-def check_reward_range(dataset: OfflineDataset, r_max: float, reward_weights=None) -> None:
-    """Refuse rewards outside ``[0, r_max]`` (noisy ones beyond their noise, see
-    :attr:`~r2pvi.OfflineDataset.reward_noise`): every estimator clips ``Q_h`` to
-    ``[0, (H - h) r_max]`` (the paper's ``min{., H - h + 1}^+`` with rewards in [0, 1]), so
-    larger rewards would be cut off and negative ones lifted to 0, silently: constant Q and
-    an arbitrary policy when every reward is out of range.
-
-    The rewards' range is the dataset's :attr:`~r2pvi.OfflineDataset.reward_range` (taken
-    when the data was validated or written: no pass over the features); rewards the dataset
-    did not check when it was built (a directory's files, Dask arrays) are checked again,
-    step by step, by the fit as it reads them (finite and in range). With
-    ``reward_weights`` the rewards are ``phi_h^T theta_h`` on the data: on simplex features
-    they lie in ``[min_i theta_hi, max_i theta_hi]``, which settles most steps without reading
-    a feature; other steps are computed (one product ``phi_h theta_h``).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from r2pvi import OfflineDataset, PEVI
-    >>> ds = OfflineDataset.from_features(np.full((4, 2, 2), 0.5), np.full((4, 2), 3.0),
-    ...                                   np.full((4, 2, 1, 2), 0.5))
-    >>> PEVI().fit(ds)
-    Traceback (most recent call last):
-    ...
-    ValueError: rewards reach 3.0 > r_max=1.0; pass r_max=3.0 or larger (every estimator ...
-    >>> PEVI(r_max=3.0).fit(ds).weights_.shape
-    (2, 2)
-    """
-    tol = REWARD_RTOL * r_max
-    if reward_weights is None:
-        low, high = dataset.reward_range
-        if not np.isfinite([low, high]).all():
-            return  # rewards not checked when built: the fit names the bad one as it reads it
-        what, where = "rewards", ""
-        noise = REWARD_NOISE_Z * dataset.reward_noise
-        if noise:
-            tol += noise
-            where = (f" (beyond the {REWARD_NOISE_Z:g} standard deviations of the dataset's "
-                     f"reward_noise={dataset.reward_noise!r})")
-    else:
-        low, high = _implied_reward_range(dataset, reward_weights, -tol, r_max + tol)
-        what, where = "the rewards phi_h^T theta_h of reward_weights", " on the data"
-    if low < -tol:
-        shift = -low
-        raise ValueError(
-            f"{what} go down to {low!r} < 0{where}, but every estimator clips Q_h to "
-            f"[0, (H - h) r_max], so the values would be wrong (all 0 if every reward is "
-            f"negative). Shift the rewards by c >= {shift!r}: add c to every reward and "
-            "(H - h - 1) c to known next_values (OfflineDataset.from_episodes(..., "
-            "reward_offset='auto') does both; the greedy policy is unchanged"
-            + ("; with simplex features adding c to every entry of reward_weights adds c to "
-               "every reward" if reward_weights is not None else "")
-            + f"), and pass r_max >= the largest shifted reward ({high + shift!r} for "
-            f"c = {shift!r})"
-        )
-    if high > r_max + tol:
-        raise ValueError(
-            f"{what} reach {high!r} > r_max={r_max!r}{where}; pass r_max={high!r} or larger "
-            "(every estimator clips Q_h to [0, (H - h) r_max])"
-        )
-
-
-def _implied_reward_range(dataset, theta: np.ndarray, low_ok: float, high_ok: float):
-    """``(min, max)`` of ``phi_h^T theta_h`` over the taken actions, exact where it matters:
-    a step whose bound ``[min theta_h, max theta_h]`` (simplex rows), ``[min(s t), max(s t)]``
-    over the recorded range of the rows' sums ``s`` and ``t`` in ``{min theta_h, max
-    theta_h}`` (non-negative rows whose sums are known) or ``0`` (``theta_h = 0``) lies in
-    ``[low_ok, high_ok]`` is not read."""
-    source = getattr(dataset, "_source", None)
-    nonneg = source is not None and source.nonnegative_phi is True
-    simplex = nonneg and source.unit_rows
-    # non-negative rows whose sums lie in [s_lo, s_hi] (found by validation or recorded in a
-    # directory's manifest; e.g. float32 rows, 1 within ~1e-7): phi^T theta lies in
-    # [min(s t_min), max(s t_max)]
-    sums = getattr(source, "phi_row_sums", None) if nonneg and not simplex else None
-    # features not checked when the dataset was built: an infinity is named below, not warned
-    unchecked = source is not None and "phi" not in source.checked
-    low, high = np.inf, -np.inf
-    for h in range(dataset.horizon):
-        t = theta[h]
-        if not t.any():
-            bounds = (0.0, 0.0)
-        elif simplex:
-            bounds = (float(t.min()), float(t.max()))
-        elif sums is not None:
-            ends = (sums[0] * float(t.min()), sums[1] * float(t.min()),
-                    sums[0] * float(t.max()), sums[1] * float(t.max()))
-            bounds = (min(ends), max(ends))
-        else:
-            bounds = (-np.inf, np.inf)
-        if not (low_ok <= bounds[0] and bounds[1] <= high_ok):
-            with np.errstate(invalid="ignore", over="ignore") if unchecked else (
-                    contextlib.nullcontext()):
-                r = dataset._step_product(h, t)
-            bounds = (float(r.min()), float(r.max())) if r.size else (0.0, 0.0)
-            if not np.isfinite(bounds).all() and source is not None:  # features not checked
-                err = source.phi_error(h)
-                if err is not None:
-                    raise err
-        low, high = min(low, bounds[0]), max(high, bounds[1])
-    return low, high
-
-
-def _jsonable(name, value):
-    from ..duals.fdivergence import FDivergence, get_divergence
-
-    if isinstance(value, FDivergence):
-        spec = value.params
-        try:
-            ok = bool(spec) and get_divergence(spec) == value
-        except (TypeError, ValueError, KeyError):
-            ok = False
-        if not ok:
-            raise TypeError(
-                f"cannot save parameter {name}={value!r}: a custom FDivergence has code, which "
-                "is never pickled; use a built-in divergence or save the weights_ yourself"
-            )
-        return {"__divergence__": spec}
-    if value is None or isinstance(value, bool | str):
-        return value if not isinstance(value, str) else str(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    if isinstance(value, numbers.Integral):
-        return int(value)
-    if isinstance(value, numbers.Real):
-        return float(value)
-    raise TypeError(f"cannot save parameter {name}={value!r} of type {type(value).__name__}")
-
-
 def _gram_error_with_step(exc, dataset, gamma, sample_weights) -> GramMatrixError:
     """The same error, naming the (0-based) step whose Gram matrix has no Cholesky factor."""
     for h in range(dataset.horizon - 1, -1, -1):
@@ -425,55 +300,3 @@ def load_estimator(path):
     ``ValueError`` naming the file and the field.
     """
     return load_model(path)
-
-
-def _pack_elliptical(factors: list) -> tuple[list[int], dict, list[str]]:
-    """Distinct per-step elliptical factors as arrays: ``(index (H,), arrays, kinds (G,))``.
-
-    ``elliptical_c (G, 2)`` for every factor; by kind, in the order of ``kinds``: "dense"
-    ``elliptical_r``, "sparse" (sparse-row dual form) ``elliptical_cinv`` and ``Psi``'s CSR
-    pieces, "used" (sparse-row primal form) ``L_U^{-1}`` and ``U``, ragged. Pooled steps share
-    one factor (G = 1); sparse rows may mix the two sparse kinds across steps."""
-    seen: dict[int, int] = {}
-    index, distinct = [], []
-    for factor in factors:
-        key = id(factor[0])
-        if key not in seen:
-            seen[key] = len(distinct)
-            distinct.append(factor)
-        index.append(seen[key])
-    kinds = []
-    for r, _, _ in distinct:
-        if isinstance(r, np.ndarray):
-            kinds.append("dense")
-        elif isinstance(r, _SparseProduct):
-            kinds.append("sparse")
-        elif isinstance(r, _UsedFeaturesFactor):
-            kinds.append("used")
-        else:  # pragma: no cover - the engine makes only these
-            raise TypeError(f"cannot save an elliptical factor of type {type(r).__name__}")
-    # "used" factors have c0 = 0, c1 = 1; their first column carries 1 / gamma instead.
-    arrays = {"elliptical_c": np.array([[1.0 / r.gamma, 1.0] if k == "used" else [c0, c1]
-                                        for (r, c0, c1), k in zip(distinct, kinds,
-                                                                  strict=True)])}
-    of = {k: [r for (r, _, _), kk in zip(distinct, kinds, strict=True) if kk == k]
-          for k in _ELLIPTICAL_KINDS}
-    if of["dense"]:
-        if len({r.shape for r in of["dense"]}) != 1:
-            raise TypeError("cannot save dense elliptical factors of different shapes")
-        arrays["elliptical_r"] = np.stack(of["dense"])
-    if of["sparse"]:
-        if len({r.cinv.shape for r in of["sparse"]}) != 1:
-            raise TypeError("cannot save sparse elliptical factors of different sizes")
-        psis = [r.psi for r in of["sparse"]]
-        arrays["elliptical_cinv"] = np.stack([r.cinv for r in of["sparse"]])
-        arrays["elliptical_psi_data"] = np.concatenate([p.data for p in psis]).astype(float)
-        arrays["elliptical_psi_indices"] = np.concatenate(
-            [p.indices for p in psis]).astype(np.int64)
-        arrays["elliptical_psi_indptr"] = np.stack([p.indptr for p in psis]).astype(np.int64)
-    if of["used"]:
-        used = of["used"]
-        arrays["elliptical_sizes"] = np.array([r.cols.size for r in used], dtype=np.int64)
-        arrays["elliptical_cols"] = np.concatenate([r.cols for r in used]).astype(np.int64)
-        arrays["elliptical_linv_data"] = np.concatenate([r.linv.ravel() for r in used])
-    return index, arrays, kinds

@@ -30,9 +30,10 @@ class TVBallRule(StepRule):
 
     def __call__(self, E, v, ctx):
         floor = floor_value(self.v_min, v)
-        lo, hi = step_value_range(v, ctx)
         rho = self.rho[ctx.h] if ctx.dims is None else self.rho[ctx.h][ctx.dims]
-        return tv_constrained(E, v, rho, floor, v_range=(min(lo, floor), hi))
+        # PEVI's range: rho_{h,i} = 0 gives PEVI's projected estimate, the limit rho -> 0+
+        # (a v_min below the range lowers only the results' lower end, tv_constrained)
+        return tv_constrained(E, v, rho, floor, v_range=step_value_range(v, ctx))
 
     def factor_params(self, h):
         return self.rho[h]
@@ -50,17 +51,18 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
     Numerical guarantees (any data, also signed ridge weights): each ``w_h,i`` is finite and
     lies in ``[min(V_min, m), m]`` with ``m`` the plain ridge estimate of ``E_i V_{h+1}``
     clipped to ``[0, (H - h - 1) r_max]`` (the ball contains ``mu0``, so the robust value
-    never exceeds it); it is non-increasing in ``rho`` and tends to ``m`` as ``rho -> 0+``
-    (``rho = 0`` gives the plain estimate, :class:`~r2pvi.PEVI`'s, which is ``m`` whenever it
-    lies in the value range), and any radius past saturation (``rho = 1e16``) gives
-    ``V_min`` exactly. VA-DRPVI has the same guarantees on its weighted operator.
+    never exceeds it); it is non-increasing in ``rho``, ``rho_{h,i} = 0`` gives ``m``,
+    :class:`~r2pvi.PEVI`'s projected estimate (the limit ``rho -> 0+``: continuous at 0), and
+    any radius past saturation (``rho = 1e16``) gives ``V_min`` exactly. VA-DRPVI has the
+    same guarantees on its weighted operator.
 
     Parameters
     ----------
     rho : float, array (d,) or array (H, d)
         Radii of the TV balls (>= 0; ``rho >= 1`` allows any distribution): one for all,
-        one per factor, or one per step and factor (0-based steps). ``rho_{h,i} = 0`` uses the
-        plain ridge estimate for that factor, so ``rho = 0`` is the non-robust estimator.
+        one per factor, or one per step and factor (0-based steps). ``rho_{h,i} = 0`` uses
+        PEVI's estimate for that factor (the plain ridge estimate projected onto the value
+        range), so ``rho = 0`` is PEVI with the same ``beta``, ``gamma`` and ``penalty``.
     beta : float, default 1.0
         Scale of the pessimism penalty (>= 0).
     gamma : float, default 1.0
@@ -76,7 +78,8 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         Reward bound: ``Q_h`` is clipped to ``[0, (H - h) r_max]``.
     variance_aware : bool, default False
         VA-DRPVI (Liu & Xu 2024): a first, unweighted DRPVI pass gives
-        ``V_{h+1}``, whose estimated conditional variance weights a second pass
+        ``V_{h+1}``, whose estimated conditional variance (in units of ``r_max^2``, floored
+        at 1; :func:`~r2pvi.algorithms._variance.variance_weights`) weights a second pass
         (weighted Gram matrix, targets and penalty).
     time_homogeneous : bool, default False
         Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the

@@ -9,10 +9,10 @@ import numpy as np
 
 from .._validation import check_choice
 from ..duals.constrained import kl_constrained
+from ..duals.ranges import value_extent, value_range, value_unit
 from ..engine import StepContext, StepRule
 from ._params import check_radius
 from .base import LinearEstimator
-from .drpvi import step_value_range
 
 __all__ = ["DRVIL", "KLBallRule", "auto_b_min"]
 
@@ -54,11 +54,20 @@ class KLBallRule(StepRule):
         self.form = form
 
     def __call__(self, E, v, ctx: StepContext):
-        b_min = auto_b_min(v, E.n_points) if self.b_min == "auto" else self.b_min
+        # in the values' unit (value_unit, a power of two: exact): the search over b has
+        # tolerances relative to 1 and squares b
+        unit = value_unit(value_extent(v))
+        u = v if unit == 1.0 else v / unit
+        if self.b_min == "auto":
+            b_min = auto_b_min(u, E.n_points)
+        else:
+            # (a b_min below 2^-1000 value units acts as that: 1 / b stays finite)
+            b_min = None if self.b_min is None else max(self.b_min / unit, 2.0**-1000)
         rho = self.rho[ctx.h] if ctx.dims is None else self.rho[ctx.h][ctx.dims]
         ma = self.form == "ma"
-        return kl_constrained(E, v, rho, v_range=step_value_range(v, ctx),
-                              centered=ma, normalized=not ma, b_min=b_min)
+        w = kl_constrained(E, u, rho, v_range=value_range(u, ctx.next_value_bound / unit),
+                           centered=ma, normalized=not ma, b_min=b_min)
+        return w if unit == 1.0 else w * unit
 
     def factor_params(self, h):
         return self.rho[h]
@@ -107,16 +116,18 @@ class DRVIL(LinearEstimator):
     lies in ``[0, m]``, ``m`` the plain ridge estimate of ``E_i V_{h+1}`` clipped to
     ``[0, (H - h - 1) r_max]`` (the ball contains ``mu0``, so the robust value never exceeds
     it; the estimate of ``E_i[e^{-V/b}]`` is floored at ``e^{-m/b}``, Jensen's bound, instead
-    of Ma et al.'s ``e^{-H/b}``); it is non-increasing in ``rho`` and tends to ``m`` as
-    ``rho -> 0+`` (``rho = 0`` gives the plain estimate, :class:`~r2pvi.PEVI`'s, which is
-    ``m`` whenever it lies in the value range), and a radius so large that no ``b >= b_min``
+    of Ma et al.'s ``e^{-H/b}``); it is non-increasing in ``rho``, ``rho_{h,i} = 0`` gives
+    ``m``, :class:`~r2pvi.PEVI`'s projected estimate (the limit ``rho -> 0+``: continuous at
+    0), and a radius so large that no ``b >= b_min``
     gives a value above 0 (``rho = 1e10``) gives 0, the least value.
 
     Parameters
     ----------
     rho : float, array (d,) or array (H, d)
         Radii of the KL balls (>= 0): one for all, one per factor, or one per step and factor.
-        ``rho_{h,i} = 0`` uses the plain ridge estimate for that factor.
+        ``rho_{h,i} = 0`` uses PEVI's estimate for that factor (the plain ridge estimate
+        projected onto the value range): ``rho = 0`` is PEVI with the same ``beta``,
+        ``gamma`` and ``penalty``.
     beta : float, default 1.0
         Scale of the pessimism penalty (>= 0).
     gamma : float, default 1.0

@@ -7,17 +7,11 @@ import math
 
 from .._validation import check_choice, check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
-from ..duals.ranges import project_onto_range, value_extent, value_range
-from ..duals.regularized import (
-    KL_FORMS,
-    chi2_regularized,
-    f_regularized,
-    kl_regularized,
-    tv_regularized,
-)
+from ..duals.general_f import f_regularized
+from ..duals.ranges import project_onto_range, value_extent, value_range, value_unit
+from ..duals.regularized import KL_FORMS, chi2_regularized, kl_regularized, tv_regularized
 from ..engine import StepRule
 from ._params import check_flag, check_v_min
-from ._params import floor_value as _floor
 from ._variance import VarianceAwareMixin
 from .base import LinearEstimator
 
@@ -26,12 +20,30 @@ THEORY = "theory"
 __all__ = ["R2PVI", "TVRule", "KLRule", "Chi2Rule", "FDivergenceRule"]
 
 
-def _step_range(v, ctx, v_min="data", extent=None):
+def _step_range(v, ctx, v_min="data", extent=None, unit=1.0):
     """``[lower, upper]`` of ``V_{h+1}`` (:func:`~r2pvi.duals.ranges.value_range`): 0 (or a
     negative known ``v_min``) to the step's own bound ``(H - h - 1) r_max``. ``extent``:
-    ``(min v, max v)`` if the rule has them."""
+    ``(min v, max v)`` if the rule has them; ``unit``: the unit ``v`` (and ``v_min``) are
+    measured in (:func:`~r2pvi.duals.ranges.value_unit`)."""
     lower = 0.0 if v_min == "data" else min(0.0, float(v_min))
-    return value_range(v, ctx.next_value_bound, lower, extent=extent)
+    return value_range(v, ctx.next_value_bound / unit, lower, extent=extent)
+
+
+# lam below this many value units acts as it: 1 / lam stays finite (lam / unit would
+# underflow to 0 for lam = 1e-300 and values of 1e300); far below any value's resolution.
+_LAM_FLOOR = 2.0**-1000
+
+
+def _in_units(v, v_min="data"):
+    """``(unit, v / unit, v_min / unit, extent of v / unit)`` with ``unit =
+    value_unit(extent of v)``, a power of two (exact): the values' own scale, so the formulas
+    see values in ``[-2, 2]`` whatever the scale of the rewards and ``r_max``."""
+    ext = value_extent(v)
+    unit = value_unit(ext)
+    if unit == 1.0:
+        return unit, v, v_min, ext
+    return (unit, v / unit, (v_min if v_min == "data" else v_min / unit),
+            (ext[0] / unit, ext[1] / unit))
 
 
 class TVRule(StepRule):
@@ -70,11 +82,15 @@ class Chi2Rule(StepRule):
         self.lam = lam
 
     def __call__(self, E, v, ctx):
-        ext = value_extent(v)  # once: the step's range, the centering and the dual's range
-        lo, hi = _step_range(v, ctx, extent=ext)
+        # in the values' unit (value_unit): their squares stay finite and normal; the extent
+        # once: the step's range, the centering and the dual's range
+        unit, u, _, ext = _in_units(v)
+        lo, hi = _step_range(u, ctx, extent=ext, unit=unit)
         top = hi - ext[0]
-        w = chi2_regularized(E, v, self.lam, (0.0, top), (0.0, top * top), extent=ext)
-        return project_onto_range(w, lo, hi)
+        lam = max(self.lam / unit, _LAM_FLOOR)
+        w = chi2_regularized(E, u, lam, (0.0, top), (0.0, top * top), extent=ext)
+        w = project_onto_range(w, lo, hi)
+        return w if unit == 1.0 else w * unit
 
 
 class FDivergenceRule(StepRule):
@@ -84,8 +100,12 @@ class FDivergenceRule(StepRule):
         self.lam, self.divergence, self.v_min = lam, divergence, v_min
 
     def __call__(self, E, v, ctx):
-        w = f_regularized(E, v, self.lam, self.divergence, _floor(self.v_min, v))
-        return project_onto_range(w, *_step_range(v, ctx, self.v_min))
+        # in the values' unit (value_unit): the search's tolerances are relative to 1
+        unit, u, v_min, ext = _in_units(v, self.v_min)
+        lam = max(self.lam / unit, _LAM_FLOOR)
+        w = f_regularized(E, u, lam, self.divergence, ext[0] if v_min == "data" else v_min)
+        w = project_onto_range(w, *_step_range(u, ctx, v_min, ext, unit))
+        return w if unit == 1.0 else w * unit
 
 
 _CLOSED_FORMS = {"tv", "kl", "chi2"}
@@ -137,8 +157,10 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         ``V - min V`` to that range.
     variance_aware : bool, default False
         VA-R2PVI-TV (TV only): a first, unweighted pass gives ``V_{h+1}``, whose conditional
-        variance ``sigma_h^2 = max{1, [phi^T z2]_[0,H^2] - ([phi^T z1]_[0,H])^2}`` weights a
-        second pass (weighted Gram matrix, targets and penalty); see
+        variance ``sigma_h^2 = max{1, [phi^T z2]_[0,H^2] - ([phi^T z1]_[0,H])^2}``, in units
+        of ``r_max`` (``z1``, ``z2`` the ridge estimates of ``V / r_max`` and its square: the
+        paper's formula, whose rewards lie in ``[0, 1]``), weights a second pass (weighted
+        Gram matrix, targets and penalty); see
         :func:`~r2pvi.algorithms._variance.variance_weights`.
     delta : float in (0, 1), default 0.05
         Confidence of ``beta="theory"`` (the theorem's bound holds with probability at least

@@ -11,15 +11,11 @@ from .fdivergence import (
     cressie_read,
     get_divergence,
 )
-from .operators import (
-    ExpectationOperator,
-    FactorExpectation,
-    GramMatrixError,
-    RidgeExpectation,
-    TruncationCumulants,
-    cholesky_gram,
-)
-from .regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
+from .general_f import f_regularized
+from .gram import GramFactor, GramMatrixError, cholesky_gram, choose_form
+from .operator import ExpectationOperator, FactorExpectation, RidgeExpectation
+from .regularized import chi2_regularized, kl_regularized, tv_regularized
+from .sorting import TruncationCumulants
 
 __all__ = [
     "BUILTIN_DIVERGENCES",
@@ -34,8 +30,10 @@ __all__ = [
     "FactorExpectation",
     "RidgeExpectation",
     "TruncationCumulants",
-    "cholesky_gram",
+    "GramFactor",
     "GramMatrixError",
+    "choose_form",
+    "cholesky_gram",
     "chi2_regularized",
     "f_regularized",
     "kl_regularized",

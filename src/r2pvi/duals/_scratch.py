@@ -1,9 +1,9 @@
 """Reusable work buffers for the hot loops of the piecewise and general duals.
 
-A fresh large NumPy array is mapped from the operating system page by page: measured on
-the 2-core CI machine, a (30 x 10,000) float64 temporary costs ~0.5 ms of page faults, more
-than the arithmetic done on it. The duals therefore draw their (d, n) temporaries from a
-thread-local pool that the engine empties when a fit ends.
+A fresh large NumPy array is mapped from the operating system page by page, and for the
+duals' (d, n) temporaries those page faults can cost more than the arithmetic done on them
+(docs/benchmarks.md). The duals therefore draw their temporaries from a thread-local pool
+that the engine empties when a fit ends.
 """
 
 from __future__ import annotations

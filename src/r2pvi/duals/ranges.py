@@ -16,9 +16,32 @@ step's own bound ``StepContext.next_value_bound = (H - h - 1) r_max``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-__all__ = ["value_range", "value_extent", "project_onto_range", "clip"]
+__all__ = ["value_range", "value_extent", "project_onto_range", "clip", "value_unit"]
+
+
+def value_unit(extent: tuple[float, float]) -> float:
+    """The largest power of two at most ``max(|min v|, |max v|)`` (``extent = (min v, max
+    v)``; 1 when every value is 0): the unit the step rules whose formulas square values
+    (chi^2) or compare them with absolute tolerances (general f, the KL ball's search) work
+    in. The values divided by it lie in ``[-2, 2]``, so no square overflows or underflows
+    for any finite values, and the formulas see the same numbers whatever the scale of the
+    rewards and ``r_max``; dividing and multiplying by a power of two is exact.
+
+    Examples
+    --------
+    >>> value_unit((0.0, 1.0)), value_unit((0.0, 3.0)), value_unit((-0.3, 0.1))
+    (1.0, 2.0, 0.25)
+    >>> value_unit((0.0, 0.0))
+    1.0
+    """
+    top = max(abs(float(extent[0])), abs(float(extent[1])))
+    if not (top > 0.0 and math.isfinite(top)):
+        return 1.0
+    return math.ldexp(1.0, math.frexp(top)[1] - 1)
 
 
 def value_extent(v: np.ndarray) -> tuple[float, float]:

@@ -12,13 +12,12 @@ import numpy as np
 from scipy.special import logsumexp
 
 from ._scratch import buffer
-from .fdivergence import FDivergence
-from .operators import ExpectationOperator, FactorExpectation
+from .operator import ExpectationOperator, FactorExpectation
 from .piecewise import blockwise_max, dense_max
 from .ranges import value_extent
 
 __all__ = [
-    "tv_regularized", "kl_regularized", "chi2_regularized", "f_regularized", "row_sums",
+    "tv_regularized", "kl_regularized", "chi2_regularized", "row_sums",
     "KL_FORMS",
 ]
 
@@ -77,14 +76,25 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
 
     ``v_max`` is the upper bound on V (the floor ``exp(-V_max/lam)`` of the paper's form, a cap
     ``w_i <= V_max`` in both forms); None takes the maximum of ``v``. In the normalized form a
-    factor whose estimate exceeds ``s_i max v`` (what a distribution over the sampled values
-    can give: a tiny or non-positive moment from signed ridge weights, where the formula tends
-    to ``+inf``) is held at the larger of ``s_i max v`` and the plain estimate ``E_i(v)``,
-    continuously, instead of the step's bound ``V_max`` (the paper's floor
-    ``exp(-V_max/lam)``). A cap at ``E_i(v)`` everywhere (the exact dual never exceeds it)
-    would cost a second regression per step, 6-8% of a fit; this one costs it only in the
-    steps where some factor exceeds ``s_i max v``. ``extent``: ``(min v, max v)`` when
-    already known (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``.
+    ridge operator's estimate is capped at the plain estimate ``E_i(v)``, its ``lam -> inf``
+    limit, which the exact dual never exceeds: with signed ridge weights the formula can pass
+    it, and a tiny or non-positive moment (a negative weight at the least values) makes it
+    tend to ``+inf``, where the cap gives ``E_i(v)`` (continuously). ``E_i(v)`` comes from the
+    moment's own pass (one product of the stacked vectors,
+    :meth:`~r2pvi.duals.ExpectationOperator.pair_with_total_weights`). Distributions are not
+    capped (their dual is at most ``E V``). ``extent``: ``(min v, max v)`` when already known
+    (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``.
+
+    Monotonicity in ``lam``: for a distribution, and for a ridge factor whose weights are all
+    non-negative (its normalized weights are a distribution), the estimate is the exact dual
+    (times ``s_i``), non-decreasing in ``lam``. With signed weights it need not be: the
+    derivative of ``-lam log E_p[e^{-y/lam}]`` in ``lam`` is ``sum_j p_j r_j log r_j`` with
+    ``r_j = e^{-y_j/lam} / E_p[e^{-y/lam}] > 0`` and ``sum_j p_j r_j = 1``, which is
+    ``KL >= 0`` for ``p >= 0`` (Jensen) and can be negative when some ``p_j < 0``; a factor
+    with negative weight at the least values has a pole (the moment crosses 0) and, above it,
+    a dip below its ``lam -> inf`` limit. Making the estimate monotone would take its values
+    at every larger ``lam`` (the running minimum over ``[lam, inf)``), many regressions per
+    step; see docs/numerical-guarantees.md.
     Computed in the log domain, shifted by the minimum value, so it is finite and exact for
     ``lam`` from 1e-3 to 1e3 and beyond; factors whose shifted estimate underflows are
     recomputed by a sign-aware log-sum-exp over their explicit weights.
@@ -104,7 +114,8 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     upper = upper_v if v_max is None else float(v_max)
     # one K-sized work array (reused across steps: no page faults), transformed in place
     z = np.subtract(v, shift, out=buffer("kl.z", v.shape))
-    z *= -1.0 / lam
+    with np.errstate(over="ignore"):  # lam far below the values: -inf, e^z = 0 (exact)
+        z *= -1.0 / lam
     if form == "paper":
         with np.errstate(under="ignore"):
             ex = np.exp(z, out=z)
@@ -120,17 +131,27 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     # um = u - s, used by the log1p form only where u > s/2, so its absolute error ~2^-53
     # sum_j |M_ij| (u + s) moves w_i by about lam 2^-53 sum_j |M_ij| / s_i: at most one
     # spread times that); above, um (then u = um + s, whose relative error is that of s):
-    # regressing u there would leave um = u - s with an error growing like lam / spread
-    # (measured 8x the bound at 30 spreads against a 40-digit reference). um is regressed on
+    # regressing u there would leave um = u - s with an error growing like lam / spread,
+    # past the bound. um is regressed on
     # e^z - 1, or on expm1(z) from lam = 64 spreads on, where every z is near 0 and e^z - 1
     # would carry the absolute rounding error of e^z (where |e^z - 1| >= 1/2 the subtraction
     # is exact anyway). tests/test_kl_one_regression.py checks both forms against the
     # two-regression one (u and um both regressed) under this bound.
     # (From 64 spreads on, every z >= -1/64, so e^z > 1/2 and expm1 applies everywhere.)
     spread = upper_v - shift
+    # Ridge weights (signed): the plain estimate E(v) too, in the same pass as the moment (one
+    # product of the stacked vectors): the cap below. Distributions never exceed E V.
+    ridge = not E.nonnegative
+
+    def regress(y):
+        if ridge:
+            return E.pair_with_total_weights(y, v)
+        moment, total = E.with_total_weights(y)
+        return moment, None, total
+
     if lam <= _CENTER_FROM * spread:
         with np.errstate(under="ignore"):
-            u, s = E.with_total_weights(np.exp(z, out=z))
+            u, plain, s = regress(np.exp(z, out=z))
         um = u - s
     else:
         if lam > _EXPM1_FROM * spread:
@@ -138,7 +159,7 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
         else:
             np.exp(z, out=z)
             z -= 1.0
-        um, s = E.with_total_weights(z)
+        um, plain, s = regress(z)
         u = um + s
     if s.min() > 0.0 and u.min() >= _TINY:  # the usual case, with d-sized operations only
         # log(u/s) = log1p(um/s): the accurate form when u/s is not small; log(u) - log(s)
@@ -150,34 +171,23 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
             with np.errstate(divide="ignore", invalid="ignore"):
                 log_norm = np.where(near_one, np.log1p(um / s), np.log(u) - np.log(s))
         w = s * (shift - lam * log_norm)
-        return np.minimum(_tame(E, v, w, s * upper_v), upper, out=w)
-    live = s > 0.0
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        safe_s = np.where(live, s, 1.0)
-        log_norm = _log_moment(E, v, shift, lam, u) - np.log(safe_s)
-        # log(u/s) = log1p(um/s): the accurate form when u/s is not small
-        near_one = u > 0.5 * safe_s
-        log_norm[near_one] = np.log1p(um[near_one] / safe_s[near_one])
-        w = s * (shift - lam * log_norm)  # +inf where the moment is <= 0
-    plain = None
-    if not live.all():  # no positive total weight: nothing to normalize, the plain estimate
-        plain = E(v)
-        w = np.where(live, w, plain)
-    return np.minimum(_tame(E, v, w, np.where(live, s * upper_v, np.inf), plain), upper)
-
-
-def _tame(E, v, w, top, plain=None):
-    """``w_i`` where it is at most ``top_i = s_i max v`` (what a distribution over the sampled
-    values can give), else ``min(w_i, max(E_i(v), top_i))``: an estimate beyond every sampled
-    value (a tiny or non-positive moment from signed ridge weights, ``w -> +inf``) is held at
-    the larger of the plain estimate and ``top``. Continuous in ``w`` (at ``w = top`` both give
-    ``top``), keeps the ``lam -> inf`` limit ``E_i(v)``, and costs the regression of ``v`` only
-    in the steps where some factor exceeds ``top`` (``plain``: ``E(v)`` if already formed)."""
-    over = ~(w <= top)  # NaN too
-    if not over.any():
-        return w
-    plain = E(v) if plain is None else plain
-    return np.where(over, np.minimum(w, np.maximum(plain, top)), w)
+    else:
+        live = s > 0.0
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            safe_s = np.where(live, s, 1.0)
+            log_norm = _log_moment(E, v, shift, lam, u) - np.log(safe_s)
+            # log(u/s) = log1p(um/s): the accurate form when u/s is not small
+            near_one = u > 0.5 * safe_s
+            log_norm[near_one] = np.log1p(um[near_one] / safe_s[near_one])
+            w = s * (shift - lam * log_norm)  # +inf where the moment is <= 0
+        if not live.all():  # no positive total weight: nothing to normalize, the plain estimate
+            plain = E(v) if plain is None else plain
+            w = np.where(live, w, plain)
+    if plain is not None:
+        # At most the plain estimate, the lam -> inf limit (the exact dual never exceeds E V):
+        # where the moment is <= 0 (+inf above) the plain estimate itself.
+        np.minimum(w, plain, out=w)
+    return np.minimum(w, upper, out=w)
 
 
 def _log_moment(E, v, shift, lam, u):
@@ -194,7 +204,9 @@ def _log_moment(E, v, shift, lam, u):
         # only factors with weight need the exact log-sum-exp.
         live = np.any(rows != 0.0, axis=1)
         if live.any():
-            lse, sign = logsumexp(-(v - shift) / lam, b=rows[live], axis=1, return_sign=True)
+            with np.errstate(over="ignore"):  # -inf: no mass there (exact)
+                lse, sign = logsumexp(-(v - shift) / lam, b=rows[live], axis=1,
+                                      return_sign=True)
             log_u[dims[live]] = np.where(sign > 0, lse, -np.inf)
     return log_u
 
@@ -314,135 +326,3 @@ def _within_exact_chi2_bounds(E, v, lam, w):
         top = np.minimum(E(v), m + lam * (1.0 / p - 1.0))
     top = np.maximum(top, m)
     return np.minimum(np.maximum(np.nan_to_num(w, nan=-np.inf), m), top)
-
-
-def f_regularized(
-    E: ExpectationOperator,
-    v: np.ndarray,
-    lam: float,
-    divergence: FDivergence,
-    v_min=None,
-    xtol: float = 1e-11,
-    max_iter: int = 300,
-) -> np.ndarray:
-    """General f: ``sup_alpha alpha - lam E_i[f*((alpha - V)/lam)]`` (paper, Algorithm 1).
-
-    Every expectation is estimated by the operator, the constant ``alpha`` included: the
-    objective is ``E_i[alpha - lam f*((alpha - V)/lam)] = s_i alpha - lam E_i[f*(...)]`` with
-    ``s_i = E_i[1]`` (:func:`row_sums`; 1 for a distribution). So, like the closed forms,
-    the ridge estimate is ``s_i`` times the dual under the row-normalized weights, and
-    ``lam -> inf`` gives the plain ridge estimate. (Algorithm 1 as printed leaves ``alpha``
-    unshrunk, which adds ``(1 - s_i) alpha*`` — unbounded in ``lam`` for KL.)
-
-    Solved per factor by a vectorized golden-section search on an interval that contains the
-    maximizer ``alpha*`` of the exact dual for any distribution ``p`` (weights ``M_i / s_i``):
-
-    - ``[V_min + lam lo, V_max + lam hi]``, ``[lo, hi]`` the subdifferential of f at 1
-      (``E_p[(f*)'] = 1`` at ``alpha*`` and ``(f*)'`` is at most 1 left of ``lo`` and at
-      least 1 right of ``hi``);
-    - ``alpha* <= V_min + lam dom``, the right end of the conjugate's domain;
-    - ``alpha* <= V_j + lam f'_+(1 / p_j)`` for every point j: the optimal perturbed
-      distribution ``p_j (f*)'((alpha* - V_j)/lam)`` puts mass at most 1 on j, and
-      ``(f*)' = (f')^{-1}``. ``f'_+`` is the built-ins' exact right derivative
-      (:meth:`FDivergence.right_derivative`; a right secant, an upper bound, for user-defined
-      f), so the bound is safe. With signed ridge weights this bound is what keeps
-      ``alpha`` away from the edge of the domain, where a negative weight times
-      ``f* -> inf`` makes the estimated objective unbounded (e.g. Hellinger:
-      ``alpha* <= V_j + lam (1 - sqrt(p_j))``).
-
-    The search is safeguarded: non-finite objective values count as ``-inf``, both interval
-    ends are evaluated and the best point seen is returned (the ridge-estimated objective
-    need not be concave). ``v_min`` is the minimum of V over all states (it matters only when
-    f grows linearly, e.g. TV and Hellinger); None takes the minimum of ``v``. With a
-    true-model operator this equals the closed forms (TV, KL, chi^2).
-
-    Computed around the tangent at ``s0 = f'(1)`` (:attr:`FDivergence.centre`): with ``alpha =
-    V_min + lam s0 + beta`` the objective is ``E_i V - lam E_i[r((beta + V_min - V)/lam)]``,
-    ``r`` the conjugate's remainder (:meth:`FDivergence.conjugate_remainder`, ``>= 0``), so
-    no two terms of size ``lam`` cancel (before: ``s_i alpha - lam E_i[f*]``, which lost
-    ``lam / |V|`` of the digits: KL as an FDivergence 3.4e-7 above ``E V`` at ``lam = 1e4`` on
-    values of 1e-6, -100% at 1e12) and a distribution's value never exceeds ``E V``. The
-    result is capped at the plain estimate ``E_i V`` (signed ridge weights could pass it).
-    """
-    v = np.asarray(v, dtype=float)
-    floor = float(np.min(v)) if v_min is None else min(float(v_min), float(np.min(v)))
-    spread = float(np.max(v)) - floor
-    s_lo, s_hi = divergence.slope_at_one
-    s0 = divergence.centre
-    # beta = alpha - floor - lam s0: the interval of the docstring, relative to that origin
-    lo = lam * (s_lo - s0)
-    hi = spread + lam * (s_hi - s0)
-    if np.isfinite(divergence.domain_max):
-        edge = lam * (divergence.domain_max - s0)
-        if divergence.domain_open:
-            edge -= 1e-12 * max(1.0, abs(edge), abs(floor))
-        hi = min(hi, edge)
-    m = E.matrix
-    d = m.shape[0]
-    s = row_sums(E)
-    hi = np.maximum(np.minimum(hi, _mass_bound(m, s, v, lam, divergence, floor, s0)), lo)
-    plain = m @ v
-    y = floor - v  # beta + y is lam times the conjugate's argument minus s0
-
-    # A point with no weight contributes nothing, even where f* is infinite there (else
-    # 0 * inf = NaN would hide every alpha above V_j + lam dom of a point off the support).
-    off = m == 0.0
-    off = off if off.any() else None
-
-    def objective(beta):
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            rem = divergence.conjugate_remainder((beta[:, None] + y[None, :]) / lam)
-            if off is not None:
-                rem = np.where(off, 0.0, rem)
-            val = plain - lam * np.einsum("ij,ij->i", m, rem)
-        return np.where(np.isfinite(val), val, -np.inf)
-
-    invphi = (np.sqrt(5.0) - 1.0) / 2.0
-    a = np.full(d, lo)
-    bnd = hi.copy()
-    x1 = bnd - invphi * (bnd - a)
-    x2 = a + invphi * (bnd - a)
-    f1, f2 = objective(x1), objective(x2)
-    best_f = np.maximum.reduce([objective(a), objective(bnd), f1, f2])
-    scale = 1.0 + spread + abs(floor)
-    for _ in range(max_iter):
-        if np.all(bnd - a <= xtol * scale):
-            break
-        go_left = f1 >= f2  # keep [a, x2]
-        a = np.where(go_left, a, x1)
-        bnd = np.where(go_left, x2, bnd)
-        new_x = np.where(go_left, bnd - invphi * (bnd - a), a + invphi * (bnd - a))
-        new_f = objective(new_x)
-        x1, x2, f1, f2 = (
-            np.where(go_left, new_x, x2),
-            np.where(go_left, x1, new_x),
-            np.where(go_left, new_f, f2),
-            np.where(go_left, f1, new_f),
-        )
-        best_f = np.maximum(best_f, new_f)
-    # At most the plain estimate E_i V (the value at mu = mu0, above every exact dual; signed
-    # ridge weights make the estimated objective non-concave, and its sup can pass it: 0.65
-    # above for Hellinger in the final review's sample). Free: ``plain`` is at hand.
-    return np.minimum(best_f, plain)
-
-
-def _mass_bound(m, s, v, lam, divergence, floor, s0):
-    """``min_j (V_j - floor) + lam (f'_+(max(s_i / |M_ij|, 1)) - s0)`` per factor: the bound
-    ``alpha* <= V_j + lam f'_+(1/p_j)`` measured from ``floor + lam s0`` (``+inf`` where it
-    says nothing).
-
-    ``f'_+`` is the divergence's right derivative (:meth:`FDivergence.right_derivative`:
-    exact for the built-ins, else a right secant, an upper bound as f is convex, so the
-    bound stays valid); points with no weight, non-positive ``s_i`` and non-finite slopes are
-    skipped (a looser interval, never a wrong one).
-    """
-    absm = np.abs(m)
-    use = (absm > 1e-12 * absm.max(axis=1, keepdims=True)) & (s[:, None] > 0.0)
-    if not use.any():
-        return np.full(m.shape[0], np.inf)
-    with np.errstate(all="ignore"):
-        # 1/p_j >= 1 for a distribution; signed weights can have |M_ij| > s_i.
-        y = np.maximum(np.where(use, s[:, None] / np.where(use, absm, 1.0), 1.0), 1.0)
-        cap = (v[None, :] - floor) + lam * (divergence.right_derivative(y) - s0)
-    cap = np.where(use & np.isfinite(cap), cap, np.inf)
-    return cap.min(axis=1)

@@ -5,6 +5,8 @@
 - :class:`SimulatedLinearMDP` — the paper's simulated linear MDP (Appendix A.1);
 - :class:`HardInstance` — the hard instances of the lower bound;
 - :class:`AmericanPutOption` — the simulated American put option (Appendix A.2).
+- :func:`evaluate_cartpole_grid` — the noisy CartPole test grid of RFQI (vectorized NumPy;
+  :mod:`r2pvi.envs.noisy_cartpole`).
 
 Each collects offline datasets exactly as the paper does (``env.collect``). Exact
 evaluation lives in :mod:`r2pvi.evaluation`. The Gymnasium adapters (:mod:`r2pvi.envs.gym`,
@@ -13,11 +15,13 @@ imported only when used.
 """
 
 from ._dataset import Trajectories
-from .collect import EpsilonGreedy, UniformPolicy, collect_episodes
+from .cartpole_grid import GridEvaluation, evaluate_cartpole_grid
+from .collect import collect_episodes
 from .finite import FiniteLinearMDP
 from .hard_instance import HardInstance
 from .policies import policy_table
 from .put_option import EXERCISE, HOLD, AmericanPutOption
+from .rollout_policies import EpsilonGreedy, UniformPolicy
 from .simulated import SIMULATED_ACTIONS, SimulatedLinearMDP
 
 __all__ = [
@@ -33,4 +37,6 @@ __all__ = [
     "collect_episodes",
     "EpsilonGreedy",
     "UniformPolicy",
+    "evaluate_cartpole_grid",
+    "GridEvaluation",
 ]

@@ -2,7 +2,7 @@
 
 Robust offline RL benchmarks (RFQI, Panaganti et al. 2022) collect their data with an
 epsilon-greedy expert in the nominal environment. These experts are policies in the sense of
-:mod:`r2pvi.envs.collect`: ``policy(h, observations) -> actions`` on a batch.
+:mod:`r2pvi.envs.rollout_policies`: ``policy(h, observations) -> actions`` on a batch.
 
 - :class:`CartPoleLQR`: a linear state-feedback controller for CartPole, its gain the
   infinite-horizon discrete LQR gain of the dynamics linearized at the upright position

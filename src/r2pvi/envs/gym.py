@@ -6,6 +6,8 @@ Importing this module registers the ids
 - ``r2pvi/SimulatedLinearMDP-v0`` (kwargs ``delta, xi_norm``, optional ``q``),
 - ``r2pvi/HardInstance-v0`` (kwargs ``d, H, lam, epsilon, delta, xi``, ...),
 - ``r2pvi/AmericanPutOption-v0`` (kwargs ``p0, d, H, strike``, ...),
+- ``r2pvi/NoisyCartPole-v0`` (kwargs ``sigma, max_steps`` and CartPole's parameters: the
+  RFQI protocol, :mod:`r2pvi.envs.noisy_cartpole_gym`),
 
 so ``gymnasium.make("r2pvi/SimulatedLinearMDP-v0")`` works after ``import r2pvi.envs.gym``
 (or in one line: ``gymnasium.make("r2pvi.envs.gym:r2pvi/SimulatedLinearMDP-v0")``).
@@ -65,8 +67,9 @@ _ENTRY_POINTS = {
     HardInstance.gym_id: "make_hard_instance",
     AmericanPutOption.gym_id: "make_american_put_option",
 }
+NOISY_CARTPOLE_ID = "r2pvi/NoisyCartPole-v0"
 #: The registered environment ids.
-ENV_IDS = tuple(_ENTRY_POINTS)
+ENV_IDS = (*_ENTRY_POINTS, NOISY_CARTPOLE_ID)
 
 
 def _require_gymnasium():
@@ -295,6 +298,9 @@ def register_envs() -> None:
     for env_id, entry in _ENTRY_POINTS.items():
         if env_id not in gymnasium.registry:
             gymnasium.register(id=env_id, entry_point=f"{__name__}:{entry}")
+    if NOISY_CARTPOLE_ID not in gymnasium.registry:
+        gymnasium.register(id=NOISY_CARTPOLE_ID,
+                           entry_point="r2pvi.envs.noisy_cartpole_gym:NoisyCartPoleEnv")
 
 
 if gymnasium is not None:

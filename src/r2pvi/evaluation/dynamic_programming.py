@@ -23,8 +23,9 @@ import numpy as np
 from .._validation import as_float_array, check_scalar
 from ..duals.constrained import kl_constrained, tv_constrained
 from ..duals.fdivergence import CHI2, KL, TV, FDivergence, get_divergence
-from ..duals.operators import FactorExpectation
-from ..duals.regularized import chi2_regularized, f_regularized, kl_regularized, tv_regularized
+from ..duals.general_f import f_regularized
+from ..duals.operator import FactorExpectation
+from ..duals.regularized import chi2_regularized, kl_regularized, tv_regularized
 from ..envs.finite import FiniteLinearMDP
 from ..envs.policies import policy_table
 
