@@ -70,7 +70,9 @@ numpydoc_validation_checks: set[str] = set()
 API_MODULES = [
     ("r2pvi", "Estimators, the dataset and divergences", "api"),
     ("r2pvi.features", "Feature maps", "api"),
+    ("r2pvi.data", "The dataset and its checks", "api"),
     ("r2pvi.episodes", "Episodes of any length", "api"),
+    ("r2pvi.sparse", "Sparse rows (tile coding, aggregation, one-hot)", "api"),
     ("r2pvi.envs", "Environments", "api"),
     ("r2pvi.envs.perturbations", "Perturbed classic-control environments", "api"),
     ("r2pvi.envs.noisy_cartpole", "The noisy CartPole protocol (RFQI/RFZI)", "api"),
@@ -80,7 +82,8 @@ API_MODULES = [
     ("r2pvi.theory", "Theory in practice", "api"),
     ("r2pvi.duals", "Dual formulas and expectation operators", "api"),
     ("r2pvi.algorithms", "Step rules and model files", "api-internals"),
-    ("r2pvi.storage", "Step-major storage and the on-disk format", "api-internals"),
+    ("r2pvi.data.storage", "Storage kinds, the step source and the on-disk format",
+     "api-internals"),
     ("r2pvi.experiments", "Reproducing the paper", "api-internals"),
 ]
 

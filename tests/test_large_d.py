@@ -422,11 +422,11 @@ def test_pooled_views_and_stacked_copies_agree(tmp_path):
     next_values = np.full(next_phi.shape[:-1], np.nan)
     next_values[:5, 1] = 0.5  # known values travel with their rows
     ds = OfflineDataset.from_features(phi, rewards, next_phi, next_values)
-    views = engine._pooled_views(ds)
+    views = ds._source.pooled_views(3)
     assert views is not None and np.shares_memory(views[0], ds._source.phi.array)
     stacked = ds.save(tmp_path / "ds")
     opened = OfflineDataset.open(stacked)
-    assert engine._pooled_views(opened) is None
+    assert opened._source.pooled_views(3) is None
     sparse = SparseOfflineDataset.from_rows(
         [sp.csr_matrix(phi[:, h]) for h in range(4)], rewards,
         [sp.csr_matrix(next_phi[:, h].reshape(-1, 6)) for h in range(4)], 2, next_values)
@@ -560,7 +560,7 @@ def _ragged_episodes(rng, n, horizon, n_actions, obs_dim=2):
 
 def test_sparse_feature_maps_give_sparse_episode_datasets():
     """from_episodes with a sparse tile coding: the dense dataset's every array and fit,
-    with no row densified (a SparseOfflineDataset)."""
+    with no row densified (an OfflineDataset of sparse rows)."""
     from r2pvi.features import TileCoding, cross_actions
 
     rng = np.random.default_rng(3)
@@ -570,8 +570,8 @@ def test_sparse_feature_maps_give_sparse_episode_datasets():
     maps = [cross_actions(TileCoding(n_tilings=4, n_tiles=4, sparse=s).fit(obs), A)
             for s in (False, True)]
     dense, sparse = (OfflineDataset.from_episodes(eps, m, A, horizon=H) for m in maps)
-    assert isinstance(sparse, SparseOfflineDataset)
-    assert not isinstance(dense, SparseOfflineDataset)
+    assert type(sparse) is type(dense) is OfflineDataset
+    assert sparse.storage == "memory (sparse rows)" and dense.storage == "memory"
     for h in range(H):
         a, b = dense.step(h), sparse.step(h)
         assert sp.issparse(b[0]) and isinstance(b[2], StackedSparse)

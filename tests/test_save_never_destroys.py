@@ -19,8 +19,8 @@ from hypothesis import strategies as st
 
 import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset
+from r2pvi.data.storage import format as _format
 from r2pvi.sparse import SparseOfflineDataset
-from r2pvi.storage import _format
 
 K, H, A, D = 12, 3, 2, 4
 SRC = str(Path(r2pvi.__file__).resolve().parents[1])  # children import the same r2pvi
@@ -110,7 +110,7 @@ def test_overwrite_replaces_a_dataset_an_old_dataset_file_or_an_empty_directory(
 
     directory = _data().save(tmp_path / "dir")
     single = tmp_path / "single"
-    _data()._save_npz(tmp_path / "single.npz").rename(single)  # the single-file format
+    _data().save(tmp_path / "single.npz").rename(single)  # the single-file format
     (tmp_path / "empty").mkdir()
     for path in (directory, single, tmp_path / "empty"):
         save(path)
@@ -159,9 +159,9 @@ def test_sparse_dataset_save_takes_the_save_keywords_and_touches_nothing(tmp_pat
     ds = SparseOfflineDataset.from_rows(rows, rng.random((K, H)), nxt, A)
     target = tmp_path / "kept"
     before = _user_directory(target)
-    with pytest.raises(TypeError, match="cannot save a SparseOfflineDataset.*kept"):
+    with pytest.raises(TypeError, match="cannot save a dataset of sparse rows.*kept"):
         ds.save(target, overwrite=True)
-    with pytest.raises(TypeError, match="cannot save a SparseOfflineDataset"):
+    with pytest.raises(TypeError, match="cannot save a dataset of sparse rows"):
         ds.save(tmp_path / "new", dtype="float32", next_form="full")
     assert _snapshot(target) == before and not (tmp_path / "new").exists()
 
@@ -259,7 +259,7 @@ def test_an_overwrite_killed_mid_swap_gives_the_old_dataset_back_on_open(tmp_pat
     proc = _run_child(f"""
         import os, signal, numpy as np
         from r2pvi import OfflineDataset
-        from r2pvi.storage import _format
+        from r2pvi.data.storage import format as _format
         real = os.replace
         def replace(src, dst):
             if ".tmp-" in str(src):  # the old dataset moved aside: die before the new one lands

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset
 from r2pvi.algorithms import DRPVI, DRVIL
+from r2pvi.data.storage import CHUNK
 from r2pvi.envs import FiniteLinearMDP
 
 K, H, D, A = 600, 4, 5, 3  # K >= 512: chi^2 takes its blockwise (branch and bound) path
@@ -82,7 +83,7 @@ def test_fit_is_the_same_in_memory_on_disk_and_in_any_chunking(stored, name):
     try:
         assert_same_fit(ESTIMATORS[name]().fit(mem), ref)
     finally:
-        mem._source.chunk = r2pvi.storage.CHUNK
+        mem._source.chunk = CHUNK
 
 
 @settings(max_examples=15, deadline=None)

@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from test_storage import ESTIMATORS as STORAGE_ESTIMATORS
 
 import r2pvi
-from r2pvi import DatasetWriter, OfflineDataset, storage
+from r2pvi import DatasetWriter, OfflineDataset
+from r2pvi.data.storage import behaviour
 from r2pvi.envs import FiniteLinearMDP
 from r2pvi.storage import ArrayField, BehaviourNext, behaviour_split
 
@@ -90,7 +91,7 @@ def forms(tmp_path_factory):
 @pytest.mark.parametrize("case", ["episodes", "writer", "transitions"])
 def test_rebuilt_next_features_are_the_stored_ones_bitwise(forms, case, monkeypatch):
     # side positions: counts per 7 samples (patched where BehaviourNext reads it)
-    monkeypatch.setattr(storage._behaviour, "SIDE_BLOCK", 7)
+    monkeypatch.setattr(behaviour, "SIDE_BLOCK", 7)
     full, beh = (OfflineDataset.open(p) for p in forms[case])
     assert isinstance(beh._source.next, BehaviourNext)
     _, blocks = beh._source.next._index(0)[1]

@@ -53,7 +53,7 @@ def test_a_bad_append_names_the_append_and_step_and_leaves_the_writer_as_it_was(
         w.append(*arrays(2, seed=2))
     ds = OfflineDataset.open(tmp_path / "w")
     assert ds.n_trajectories == 6
-    assert ds._source.nonnegative_phi
+    assert json.loads((tmp_path / "w" / "manifest.json").read_text())["nonnegative_phi"] is True
 
 
 def test_empty_append_with_mismatched_fields_is_refused(tmp_path):

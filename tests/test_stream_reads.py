@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import r2pvi
-from r2pvi import OfflineDataset, engine, storage
+from r2pvi import OfflineDataset, engine
+from r2pvi.data.storage import files
 from r2pvi.storage import ArrayField, FileField, StoredNext
 
 
@@ -45,7 +46,7 @@ def test_float32_files_are_read_by_pread_and_cast(data, monkeypatch):
         shape = (min(chunk, K),) + f.shape[2:]
         for h in (0, H - 1):
             seen, buffers = 0, set()
-            for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
+            for s, e, rows in files._prefetched(f, h, K, chunk, shape):
                 assert s == seen and rows.dtype == np.float64 and rows.flags.c_contiguous
                 np.testing.assert_array_equal(rows, f.read(h, s, e))
                 buffers.add(rows.__array_interface__["data"][0])
@@ -111,8 +112,8 @@ def test_float64_files_are_read_as_views_of_the_map(data64, window, chunk, monke
     bitwise what pread reads, in file order; windows smaller than a step, chunks that straddle
     nothing or everything."""
     _, path = data64
-    # the module that reads MAP_WINDOW (storage re-exports only its value)
-    monkeypatch.setattr(storage._reads, "MAP_WINDOW", window)
+    # the module that reads MAP_WINDOW (the package re-exports only its value)
+    monkeypatch.setattr(files, "MAP_WINDOW", window)
     maps = []
     real = mmap.mmap
 
@@ -129,7 +130,7 @@ def test_float64_files_are_read_as_views_of_the_map(data64, window, chunk, monke
         for h in (0, H - 1):
             seen = 0
             maps.clear()
-            for s, e, rows in storage._prefetched(f, h, K, chunk, shape):
+            for s, e, rows in files._prefetched(f, h, K, chunk, shape):
                 assert s == seen and rows.shape == (e - s,) + f.shape[2:]
                 assert rows.dtype == np.float64 and rows.flags.c_contiguous
                 assert not rows.flags.writeable and not rows.flags.owndata
@@ -153,7 +154,7 @@ def test_a_kept_float64_chunk_stays_valid_and_its_map_goes_with_it(data64, monke
     import weakref
 
     _, path = data64
-    monkeypatch.setattr(storage._reads, "MAP_WINDOW", 4096)
+    monkeypatch.setattr(files, "MAP_WINDOW", 4096)
     f = FileField(path / "next_phi.npy")
     K = f.shape[1]
     shape = (64,) + f.shape[2:]
@@ -162,7 +163,7 @@ def test_a_kept_float64_chunk_stays_valid_and_its_map_goes_with_it(data64, monke
         return [r() for r in refs if r() is not None and not r().closed]
 
     refs, kept = [], None
-    for s, e, rows in storage._prefetched(f, 1, K, 64, shape):  # run to the end
+    for s, e, rows in files._prefetched(f, 1, K, 64, shape):  # run to the end
         mm = _mapping(rows)
         if not refs or refs[-1]() is not mm:
             refs.append(weakref.ref(mm))
@@ -177,9 +178,9 @@ def test_a_kept_float64_chunk_stays_valid_and_its_map_goes_with_it(data64, monke
     mine = _mapping(rows)
     assert alive(refs) == [mine]  # every other window is unmapped
     np.testing.assert_array_equal(rows, f.read(1, s, e))
-    assert storage._reads._unmap(mine) is False and not mine.closed  # a view is alive
+    assert files._unmap(mine) is False and not mine.closed  # a view is alive
     # abandoned half-way while a chunk is held: no BufferError from the generator's close
-    gen = storage._prefetched(f, 1, K, 64, shape)
+    gen = files._prefetched(f, 1, K, 64, shape)
     s2, e2, held = next(gen)
     gen.close()
     np.testing.assert_array_equal(held, f.read(1, s2, e2))
@@ -190,7 +191,7 @@ def test_a_kept_float64_chunk_stays_valid_and_its_map_goes_with_it(data64, monke
     # the last view released: nothing exports the map any more
     del rows
     gc.collect()
-    assert storage._reads._unmap(mine) is True and mine.closed
+    assert files._unmap(mine) is True and mine.closed
     f.close()
 
 
@@ -225,7 +226,7 @@ def test_unaligned_float64_files_are_copied(tmp_path):
         fh.write(a.tobytes())
     f = FileField(path)
     assert f.offset % 8 == 4 and f.dtype == np.float64
-    for s, e, rows in storage._prefetched(f, 1, 50, 16, (16, 3)):
+    for s, e, rows in files._prefetched(f, 1, 50, 16, (16, 3)):
         assert rows.flags.aligned and rows.flags.writeable
         np.testing.assert_array_equal(rows, a[1, s:e])
     f.close()

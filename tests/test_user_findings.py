@@ -216,7 +216,7 @@ def test_estimator_save_never_writes_over_a_dataset_or_a_directory(tmp_path):
 def test_directory_save_over_a_dataset_file_leaves_nothing_behind(tmp_path):
     data, *_ = _data()
     path = tmp_path / "d"
-    data._save_npz(path.with_suffix(".npz")).rename(path)  # a dataset file without a suffix
+    data.save(path.with_suffix(".npz")).rename(path)  # a dataset file without a suffix
     with pytest.raises(FileExistsError):
         data.save(path)
     data.save(path, overwrite=True)
@@ -283,7 +283,7 @@ def test_large_feature_spaces_snippet_runs_as_written(capsys):
     assert blocks
     for code in blocks:
         exec(compile(code, "large-feature-spaces.md", "exec"), {})  # noqa: S102
-    assert "SparseOfflineDataset 10000 (20, 10000)" in capsys.readouterr().out
+    assert "memory (sparse rows) 10000 (20, 10000)" in capsys.readouterr().out
 
 
 def test_docs_no_longer_say_datasets_are_dense_and_readme_shows_load():

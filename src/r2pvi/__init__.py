@@ -10,8 +10,8 @@ from . import envs, evaluation, features
 from .algorithms import DRPVI, DRVIL, PEVI, R2PVI, LinearEstimator
 from .algorithms import load_estimator as load
 from .data import OfflineDataset, SimplexFeatureWarning
+from .data.storage import DatasetWriter
 from .duals import FDivergence, cressie_read
-from .storage import DatasetWriter
 
 try:
     __version__ = version("r2pvi")

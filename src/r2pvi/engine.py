@@ -31,11 +31,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from .data import OfflineDataset
+from .data.storage._finite import FIELDS, NonFiniteRows, check_next_products
+from .data.storage.sparse_rows import flat_rows
 from .duals._scratch import release
 from .duals.gram import GramFactor, GramMatrixError, choose_form, ridge_cholesky
 from .duals.operator import RidgeExpectation
-from .sparse import StackedSparse, stack_rows
-from .storage._finite import FIELDS, NonFiniteRows, check_next_products
 
 __all__ = [
     "StepRule",
@@ -116,13 +116,6 @@ class FittedModel:
     value_moments: np.ndarray | None = None
 
 
-def _rows(phi):
-    """``(flat (m, d), lead)`` of features ``phi (..., d)``: dense, or stacked sparse rows."""
-    if isinstance(phi, StackedSparse):
-        return phi.matrix, phi.lead
-    return phi.reshape(-1, phi.shape[-1]), phi.shape[:-1]
-
-
 def elliptical_norms(flat, factor) -> np.ndarray:
     """``||x||_{Lambda^{-1}}`` of rows ``x`` of ``flat (m, d)`` (dense or sparse) from the
     fitted factor ``(R, c0, c1)``: one product with ``R``, no factorization."""
@@ -148,7 +141,7 @@ def penalty_values(phi, kind: str, beta: float, inv_diag, ellip=None) -> np.ndar
     - ``"elliptical"`` (PEVI): ``beta ||phi||_{Lambda^-1}``, from the fitted factor ``ellip``
       (see :func:`elliptical_norms`)
     """
-    flat, lead = _rows(phi)
+    flat, lead = flat_rows(phi)
     if beta == 0.0:
         return np.zeros(lead)
     if kind == "l1":
@@ -168,11 +161,12 @@ def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonn
     """``clip(phi^T w - Gamma(phi), 0, upper)``, with known values where not NaN.
 
     ``ellip`` is the step's elliptical factor (only read by the "elliptical" penalty);
-    ``phi`` is ``(..., d)`` dense or :class:`~r2pvi.sparse.StackedSparse`. ``check`` refuses
-    non-finite features where no value is known, and infinite known values
-    (:func:`~r2pvi.storage._finite.check_next_products`), before the clip would hide them.
+    ``phi`` is ``(..., d)`` dense or a
+    :class:`~r2pvi.data.storage.sparse_rows.StackedSparse`. ``check`` refuses non-finite
+    features where no value is known, and infinite known values
+    (:func:`~r2pvi.data.storage._finite.check_next_products`), before the clip would hide them.
     """
-    flat, lead = _rows(phi)  # one GEMM, not a batch of small products
+    flat, lead = flat_rows(phi)  # one GEMM, not a batch of small products
     if kind == "l1" and beta != 0.0:
         scale = -beta * np.sqrt(inv_diag)
         if nonneg:  # |phi| = phi: one matrix-vector product (an n x 2 GEMM costs ~3x one)
@@ -207,7 +201,7 @@ class _NextValue:
 
     def __init__(self, weights_h, kind, beta, inv_diag, chol, upper, check=False):
         self.args = (weights_h, kind, beta, inv_diag, chol, upper)
-        # refuse non-finite features (storage._finite.NonFiniteRows): data not checked when
+        # refuse non-finite features (data.storage._finite.NonFiniteRows): data not checked when
         # the dataset was built
         self.check = bool(check)
 
@@ -502,7 +496,7 @@ def _primal_factor(gram, gamma, weights, shape) -> GramFactor:
 def _streams(source, form: str, time_homogeneous: bool) -> bool:
     """Whether a step's operator is accumulated by chunk (:class:`ChunkedRidgeExpectation`):
     per-step fits of dense features whose Gram matrix is factored in primal form."""
-    if source is None or time_homogeneous:
+    if time_homogeneous or not source.dense_rows:  # sparse rows: a step's rows whole
         return False
     if form == "auto":
         form = choose_form(source.n_trajectories, source.n_features)
@@ -574,21 +568,21 @@ def backward_induction(
         which the variance-aware variants' first pass needs; two more regressions per step.
     """
     H, d = dataset.horizon, dataset.n_features
-    # The step-major data: in memory, on disk or in Dask arrays (None: a dataset that only
-    # offers step(h), e.g. r2pvi.sparse.SparseOfflineDataset).
-    source = getattr(dataset, "_source", None)
+    # The step-major data (memory, files, Dask arrays, sparse rows, observations): the engine
+    # asks the source for a step's rows and products, never which kind it holds.
+    source = dataset._source
     nonneg_phi = dataset._nonnegative_phi  # None: checked on a step's features when needed
-    nonneg = dataset.nonnegative_next_features if source is None or time_homogeneous else None
+    nonneg = dataset.nonnegative_next_features if time_homogeneous else None
     weights = np.zeros((H, d))
     thetas = np.zeros((H, d))
     inv_diags = np.zeros((H, d))
     ellip = [None] * H if penalty == "elliptical" else None
     moments = np.zeros((H, d, 2))
     # ---- data access: one step's arrays, or every step's pooled (the only data path here)
-    pooled = _pooled_steps(dataset) if time_homogeneous else None
+    pooled = source.pooled(pooled_steps(H)) if time_homogeneous else None
     # What the dataset did not check when it was built (files, Dask arrays, feature maps) is
-    # checked as the fit reads it: see storage._finite.
-    checked = FIELDS if source is None else source.checked
+    # checked as the fit reads it: see data.storage._finite.
+    checked = source.checked
     if pooled is not None and reward_weights is None and "rewards" not in checked:
         K = dataset.n_trajectories
         for h in range(pooled_steps(H)):
@@ -610,8 +604,6 @@ def backward_induction(
             for h in range(H - 1, -1, -1):
                 if time_homogeneous:
                     phi, rewards, next_phi, next_known = pooled
-                elif source is None:
-                    phi, rewards, next_phi, next_known = dataset.step(h)
                 else:  # next-state data: by chunk; the rewards only when theta is estimated
                     rewards = source.rewards_step(h) if reward_weights is None else None
                     if rewards is not None:
@@ -642,7 +634,7 @@ def backward_induction(
                     qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
                                       None if ellip is None else ellip[h + 1], (H - h - 1) * r_max,
                                       check="next" not in checked)
-                    if time_homogeneous or source is None:
+                    if time_homogeneous:
                         try:
                             v_next = qmax(next_phi, next_known, nonneg)
                         except NonFiniteRows as exc:  # pooled rows: step-major
@@ -684,7 +676,7 @@ def _factor(source, h, phi, gamma, sw, form) -> GramFactor:
     non-finite features a source did not check when it was built: the Cholesky factor of a
     finite Gram matrix is finite, so only a failed or non-finite factor has the rows
     searched."""
-    if source is None or "phi" in source.checked or not isinstance(phi, np.ndarray):
+    if "phi" in source.checked or not isinstance(phi, np.ndarray):
         return GramFactor(phi, gamma, sw, form)
     try:
         factor = GramFactor(phi, gamma, sw, form)
@@ -740,48 +732,3 @@ def pooled_steps(horizon: int) -> int:
     (19, 1)
     """
     return max(int(horizon) - 1, 1)
-
-
-def _pooled_steps(dataset: OfflineDataset):
-    """The transitions of steps ``0 .. P-1`` (``P = pooled_steps(H)``) as one: ``(phi (P K,
-    d), rewards (P K,), next_phi (P K, A, d), next_values (P K, A) or None)``, step-major (row
-    ``h K + tau``)."""
-    P = pooled_steps(dataset.horizon)
-    views = _pooled_views(dataset)
-    if views is not None:
-        return views
-    steps = [dataset.step(h) for h in range(P)]
-    if any(s[3] is not None for s in steps):
-        A = dataset.n_actions
-        known = np.concatenate([
-            np.full((dataset.n_trajectories, A), np.nan) if s[3] is None else s[3]
-            for s in steps
-        ])
-    else:
-        known = None
-    return (stack_rows([s[0] for s in steps]), np.concatenate([s[1] for s in steps]),
-            stack_rows([s[2] for s in steps]), known)
-
-
-def _pooled_views(dataset: OfflineDataset):
-    """:func:`_pooled_steps` without a copy of the features when they are held in memory as
-    step-major float64 arrays: ``(H, K, ...)`` reshaped to ``(H K, ...)`` is a view. None
-    otherwise (files, Dask, float32, computed next features: those are stacked by step)."""
-    from .storage import ArrayField, StoredNext
-
-    src = getattr(dataset, "_source", None)
-    nxt = getattr(src, "next", None)
-    if not (isinstance(src.phi if src is not None else None, ArrayField)
-            and isinstance(nxt, StoredNext) and isinstance(nxt.next_phi, ArrayField)):
-        return None
-    phi, next_phi = src.phi.array, nxt.next_phi.array
-    if not all(a.dtype == np.float64 and a.flags.c_contiguous for a in (phi, next_phi)):
-        return None
-    H, K = phi.shape[:2]
-    n = pooled_steps(H) * K  # the first steps: a prefix of the step-major rows
-    known = None
-    if nxt.next_values is not None:
-        known = np.asarray(nxt.next_values.lazy(), dtype=float).reshape(H * K, -1)[:n]
-    rewards = np.asarray(src.rewards.lazy(), dtype=float).reshape(H * K)[:n]
-    return (phi.reshape(H * K, phi.shape[2])[:n], rewards,
-            next_phi.reshape((H * K,) + next_phi.shape[2:])[:n], known)

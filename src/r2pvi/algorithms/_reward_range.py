@@ -8,7 +8,7 @@ import contextlib
 import numpy as np
 
 from ..data import OfflineDataset
-from ..storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
+from ..data.storage._finite import REWARD_NOISE_Z, REWARD_RTOL  # also the fit's own checks
 
 __all__ = ["check_reward_range"]
 

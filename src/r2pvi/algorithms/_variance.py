@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..data import OfflineDataset
+from ..data.storage.sparse_rows import stack_rows
 from ..engine import FittedModel, pooled_steps
-from ..sparse import stack_rows
 
 __all__ = ["VarianceAwareMixin", "variance_weights"]
 

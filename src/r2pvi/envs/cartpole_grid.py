@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._sampling import check_count
-from .rollout_policies import as_policy_function
 from .noisy_cartpole import (
     MAX_STEPS,
     NOMINAL,
@@ -40,6 +39,7 @@ from .noisy_cartpole import (
     check_cartpole_params,
     episode_streams,
 )
+from .rollout_policies import as_policy_function
 
 __all__ = ["evaluate_cartpole_grid", "perturbation_grid", "GridEvaluation", "PROTOCOL_GRID",
            "TEST_EPISODES"]

@@ -30,7 +30,7 @@ from collections import deque
 
 import numpy as np
 
-from ..episodes import Episode
+from ..data.episodes import Episode
 from ._sampling import check_count
 from .rollout_policies import as_policy_function
 

@@ -199,7 +199,7 @@ def episodes_to_minari(episodes, dataset_id: str, env, *, root=None, **metadata)
     from minari import create_dataset_from_buffers
     from minari.data_collector.episode_buffer import EpisodeBuffer
 
-    from ..episodes import as_episode_list
+    from ..data.episodes import as_episode_list
 
     buffers = []
     for k, ep in enumerate(as_episode_list(episodes)):

@@ -133,8 +133,8 @@ def replication(seq, *, task, replication, settings):
     import gymnasium
 
     from ...data import OfflineDataset
+    from ...data.episodes import episode_observations
     from ...envs import EpsilonGreedy, collect_episodes
-    from ...episodes import episode_observations
     from ...evaluation import evaluate_policy
     from ...features import NormalizedRBF, cross_actions
 

@@ -4,87 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._fields import (
-    CHUNK,
-    ArrayField,
-    DaskField,
-    Field,
-    FileField,
-    MappedField,
-    _as_float64,
-    widen_range,
-)
 from ._finite import (
     FIELDS,
     check_step_rewards,
     file_origin,
     first_nonfinite,
-    subset_origin,
 )
-from ._next import NextStates
-from ._reads import _prefetched
+from .fields import CHUNK, Field, _as_float64
+from .next_states import NextStates
+from .sparse_rows import stack_rows
 
 GRAM_CACHE_MAX_D = 512  # Gram matrices Phi_h^T Phi_h are cached (H d^2 floats) up to this d
-
-
-def _quiet():
-    """Dask's worker threads do not inherit the fit's ``np.errstate``: unchecked data may hold
-    infinities, whose products (``inf * 0``) must not warn before the fit's checks name them.
-    A new context each time (one ``errstate`` must not be entered by two threads at once)."""
-    return np.errstate(invalid="ignore", over="ignore")
-
-
-def _quiet_product(b, z):
-    with _quiet():
-        return np.asarray(b, dtype=np.float64) @ z
-
-
-def _dask_products(field: DaskField, h, cols, weights, with_gram):
-    """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` summed on the Dask workers.
-
-    One task per trajectory chunk forms that chunk's products in float64 (the columns, and
-    the weights ``W``, travel to the workers with the graph), Dask adds the partial sums up
-    in a tree, and only the ``d x (d + m)`` sums reach the client: the step's features never
-    do. Equal to the local chunked sums up to the order of the additions.
-    """
-    import dask.array as da
-
-    x = field.step_rows(h)
-    K, d = x.shape
-    cols = [np.asarray(c, dtype=np.float64) for c in cols]
-    widths = [1 if c.ndim == 1 else int(np.prod(c.shape[1:])) for c in cols]
-    m = sum(widths)
-    y = np.empty((K, m + (0 if weights is None else 1)))
-    if m:
-        y[:, :m] = np.column_stack([c.reshape(K, -1) for c in cols])
-    if weights is not None:
-        w = np.asarray(weights, dtype=np.float64)
-        y[:, :m] *= w[:, None]
-        y[:, m] = w
-    g = d if with_gram else 0
-    width = g + m
-
-    def block(xb, yb):
-        xb = np.asarray(xb, dtype=np.float64)
-        out = np.empty((d, width))
-        with _quiet():  # an infinity in the data is named by the client's check of the sums
-            if with_gram:
-                xw = xb if weights is None else xb * yb[:, m:]
-                out[:, :d] = xw.T @ xb
-            out[:, g:] = xb.T @ yb[:, :m]
-        return out.reshape(1, d * width)
-
-    nb = len(x.chunks[0])
-    parts = da.map_blocks(block, x, da.from_array(y, chunks=(x.chunks[0], -1)),
-                          chunks=((1,) * nb, (d * width,)), dtype=np.float64)
-    total = np.asarray(parts.sum(axis=0).compute(), dtype=np.float64).reshape(d, width)
-    gram = total[:, :d].copy() if with_gram else None
-    out, at = [], g
-    for c, k in zip(cols, widths, strict=True):
-        piece = total[:, at:at + k]
-        out.append(piece[:, 0].copy() if c.ndim == 1 else piece.reshape((d,) + c.shape[1:]))
-        at += k
-    return gram, out
 
 
 class StepSource:
@@ -99,15 +29,20 @@ class StepSource:
 
     ``checked`` names the fields (``"phi"``, ``"rewards"``, ``"next"``) whose every number
     was checked when the source was built (finite; the rewards' range taken); a fit checks
-    the others as it reads them (``storage._finite``). Stored ``grams`` and ``sums`` are
+    the others as it reads them (``data.storage._finite``). Stored ``grams`` and ``sums`` are
     checked here (``H d^2`` numbers); ``stored_files`` maps ``"gram"`` and ``"phi_sums"`` to
-    the files they were read from, for the errors.
+    the files they were read from, for the errors; ``range_recorded`` says that
+    ``reward_range`` is what a directory's manifest records (named by the errors).
+
+    The source never says which storage kind it holds: each field offers the reads and
+    products a fit needs (see :class:`~r2pvi.data.storage.fields.Field`).
     """
 
     def __init__(self, phi: Field, rewards: Field, nxt: NextStates, extras=None,
                  nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
                  sums=None, unit_rows: bool = False, reward_range=None,
-                 reward_noise: float = 0.0, row_sums=None, checked=(), stored_files=None):
+                 reward_noise: float = 0.0, row_sums=None, checked=(), stored_files=None,
+                 range_recorded: bool = False):
         self.phi, self.rewards, self.next = phi, rewards, nxt
         self.checked = frozenset(checked)
         if not self.checked <= FIELDS:
@@ -119,7 +54,7 @@ class StepSource:
             if value is not None:
                 _check_stored(value, name, what, stored_files.get(name))
         # The range a directory's manifest records for its rewards file (named by errors).
-        self._recorded_range = reward_range if isinstance(rewards, FileField) else None
+        self._recorded_range = reward_range if range_recorded else None
         # The rewards' (min, max) when known (from validation or the manifest), else found
         # by reward_bounds() from the rewards alone (never the features) and kept.
         self.reward_range = None if reward_range is None else (
@@ -130,7 +65,7 @@ class StepSource:
         self.extras = dict(extras or {})
         self.nonnegative_phi = nonnegative_phi
         # True when validation found every taken-action row summing to 1 (within
-        # storage._checks.UNIT_ROW_ATOL): then Phi^T W 1 = Phi^T W Phi 1_d, the Gram
+        # storage.checks.UNIT_ROW_ATOL): then Phi^T W 1 = Phi^T W Phi 1_d, the Gram
         # matrix's row sums, and E(1) needs no pass of its own.
         self.unit_rows = bool(unit_rows)
         # (low, high) of the taken-action rows' sums when known (validation, or a directory's
@@ -176,90 +111,87 @@ class StepSource:
     def n_actions(self) -> int:
         return self.next.n_actions
 
-    def phi_step(self, h: int, out: np.ndarray | None = None) -> np.ndarray:
+    @property
+    def dense_rows(self) -> bool:
+        """Whether a step's taken-action rows are an ndarray (False: sparse rows), so that
+        a step's operator can be accumulated by chunk."""
+        return self.phi.dense_rows
+
+    def phi_step(self, h: int, out: np.ndarray | None = None):
         """Step ``h``'s taken-action features ``(K, d)`` as float64: a view when they are
-        stored so in memory, else written into ``out`` (a reused buffer) or a new array."""
-        field = self.phi
-        if isinstance(field, DaskField) or (isinstance(field, ArrayField) and (
-                field.dtype == np.float64 or out is None)):
-            return _as_float64(field.read(h))
-        shape = (self.n_trajectories, self.n_features)
-        if out is None or out.shape != shape or out.dtype != np.float64:
-            out = np.empty(shape)
-        if isinstance(field, ArrayField):
-            np.copyto(out, field.read(h))
-            return out
-        if isinstance(field, FileField):
-            chunk_shape = (min(self.chunk, shape[0]), shape[1])
-            for s, e, rows in _prefetched(field, h, shape[0], self.chunk, chunk_shape):
-                out[s:e] = rows
-            return out
-        for s in range(0, shape[0], self.chunk):
-            e = min(shape[0], s + self.chunk)
-            out[s:e] = field.read(h, s, e)
-        return out
+        stored so in memory, else written into ``out`` (a reused buffer) or a new array;
+        sparse rows as they are stored (CSR)."""
+        return self.phi.step_rows(h, self.chunk, out)
 
     def phi_chunks(self, h: int):
         """``(start, stop, rows)`` over step ``h``'s taken-action features, ``rows`` a float64
         ``(stop - start, d)`` array to read, valid until the next iteration and not to be
         written: a reused buffer, a view of an in-memory array, or (native float64 files) a
-        read-only view of the memory-mapped file (see ``storage._reads._prefetched``); copy
+        read-only view of the memory-mapped file (see ``storage.files._prefetched``); copy
         what must outlive the iteration."""
-        field, K = self.phi, self.n_trajectories
-        shape = (min(self.chunk, K), self.n_features)
-        if isinstance(field, FileField):
-            yield from _prefetched(field, h, K, self.chunk, shape)
-            return
-        reads = field.chunks(h, self.chunk)  # a Dask array: its own chunks
-        f64 = None
-        for s, e, rows in reads:
-            if rows.dtype != np.float64 or not rows.flags.c_contiguous:
-                if f64 is None or f64.shape[0] < e - s:
-                    f64 = np.empty((max(e - s, shape[0]), shape[1]))
-                np.copyto(f64[: e - s], rows)
-                rows = f64[: e - s]
-            yield s, e, rows
+        return self.phi.float64_chunks(h, self.chunk)
 
     def remote_products(self, h: int, cols, weights=None, with_gram: bool = True):
         """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` formed where the data
         is (the Dask workers) for features held as Dask arrays; None for data the client
         reads itself (memory, files, computed features), which the engine sums by chunk."""
-        if not isinstance(self.phi, DaskField):
-            return None
-        return _dask_products(self.phi, h, cols, weights, with_gram)
+        return self.phi.products(h, cols, weights, with_gram)
 
     def phi_times(self, h: int, z: np.ndarray) -> np.ndarray:
         """``Phi_h @ z`` (``(K,)`` or ``(K, m)``, float64): in memory one product, on disk by
         chunk, for Dask arrays on the workers (one task per trajectory chunk)."""
-        field = self.phi
-        if isinstance(field, DaskField):
-            x = field.step_rows(h)
-            out = x.map_blocks(lambda b: _quiet_product(b, z),
-                               chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
-                               drop_axis=None if z.ndim == 2 else 1)
-            return np.asarray(out.compute(), dtype=np.float64)
-        if isinstance(field, ArrayField) and field.dtype == np.float64:
-            return field.read(h) @ z
-        out = np.empty((self.n_trajectories,) + z.shape[1:])
-        for s, e, rows in self.phi_chunks(h):
-            out[s:e] = rows @ z
-        return out
+        return self.phi.times(h, z, self.chunk)
 
     def reward_bounds(self) -> tuple[float, float]:
         """The rewards' ``(min, max)``: known since validation or from the manifest, else
         read from the rewards field once (``H K`` numbers, no feature) and kept."""
         if self.reward_range is None:
-            field = self.rewards
-            if isinstance(field, DaskField):
-                import dask
-
-                low, high = dask.compute(field.array.min(), field.array.max())
-            else:
-                low, high = np.inf, -np.inf
-                for h in range(self.horizon):
-                    low, high = widen_range((low, high), field.read(h))
-            self.reward_range = (float(low), float(high))
+            self.reward_range = self.rewards.bounds()
         return self.reward_range
+
+    def step(self, h: int):
+        """Step ``h``'s ``(phi (K, d), rewards (K,), next_phi (K, A, d), next_values (K, A) or
+        None)``: the taken-action rows as :meth:`phi_step` gives them (float64, or CSR for
+        sparse rows), the next-state rows as the next-state form gives them (an ndarray, or a
+        :class:`~r2pvi.data.storage.sparse_rows.StackedSparse`)."""
+        nv = self.next.known(h) if self.next.has_known_values else None
+        return self.phi_step(h), self.rewards_step(h), self.next.features(h), nv
+
+    def pooled(self, P: int):
+        """The transitions of steps 0 to P-1 as one: ``(phi (P K, d), rewards (P K,),
+        next_phi (P K, A, d), next_values (P K, A) or None)``, step-major (row ``h K + tau``):
+        views of the stored arrays when they are held in memory as step-major float64 (see
+        :meth:`pooled_views`), else stacked step by step (dense or sparse rows)."""
+        views = self.pooled_views(P)
+        if views is not None:
+            return views
+        steps = [self.step(h) for h in range(P)]
+        if any(s[3] is not None for s in steps):
+            A = self.n_actions
+            known = np.concatenate([
+                np.full((self.n_trajectories, A), np.nan) if s[3] is None else s[3]
+                for s in steps
+            ])
+        else:
+            known = None
+        return (stack_rows([s[0] for s in steps]), np.concatenate([s[1] for s in steps]),
+                stack_rows([s[2] for s in steps]), known)
+
+    def pooled_views(self, P: int):
+        """:meth:`pooled` without a copy of the features when they are held in memory as
+        step-major float64 arrays: ``(H, K, ...)`` reshaped to ``(H K, ...)`` is a view; the
+        first ``P`` steps are a prefix of the rows. None otherwise (files, Dask, float32,
+        computed next features, sparse rows)."""
+        phi = self.phi.float64_array()
+        if phi is None:
+            return None
+        H, K, d = phi.shape
+        n = P * K
+        nxt = self.next.pooled_view(n)
+        if nxt is None:
+            return None
+        rewards = np.asarray(self.rewards.lazy(), dtype=float).reshape(H * K)[:n]
+        return phi.reshape(H * K, d)[:n], rewards, nxt[0], nxt[1]
 
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
@@ -279,6 +211,8 @@ class StepSource:
         ``(K, d)``, or the pooled steps' ``(P K, d)`` (step-major) with ``h = None``."""
         from ._finite import nonfinite_error
 
+        if rows is None and "phi" in self.checked:
+            return None  # checked finite when the source was built: the sums overflowed
         origin, K = self.phi.origin("phi"), self.n_trajectories
         if rows is not None:
             hit = first_nonfinite(rows)
@@ -304,12 +238,7 @@ class StepSource:
         for k, v in self.extras.items():
             extras[k] = np.asarray(v[idx])
             extras[k].flags.writeable = False
-        phi = self.phi
-        phi = MappedField(ArrayField(phi.observations.take(idx)),
-                          ArrayField(phi.actions.take(idx)), phi.feature_map,
-                          phi.shape[2]) if isinstance(phi, MappedField) else ArrayField(
-                              phi.take(idx), subset_origin(phi.origin("phi")))
-        rewards = ArrayField(self.rewards.take(idx), subset_origin(self.rewards.origin("rewards")))
+        phi, rewards = self.phi.subset(idx, "phi"), self.rewards.subset(idx, "rewards")
         return StepSource(phi, rewards, self.next.take(idx), extras, self.nonnegative_phi,
                           self.chunk, unit_rows=self.unit_rows, reward_noise=self.reward_noise,
                           row_sums=self.phi_row_sums,  # a subset's sums lie in the range

@@ -1,13 +1,96 @@
-"""Streaming a step of a :class:`FileField` in float64 chunks: views of memory-mapped windows
-(float64 files), ``pread`` and a cast (float32 files, or where a file cannot be mapped)."""
+"""Dataset directory files: a field in a ``.npy`` file, read by range with ``pread`` or
+streamed a step at a time in float64 chunks (views of memory-mapped windows for float64
+files, ``pread`` and a cast for float32 ones)."""
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 
-from ._fields import FileField
+from ._finite import file_origin
+from .fields import Field
+from .memory import in_memory
+from .npy import npy_header
+
+
+class FileField(Field):
+    """A field in a ``.npy`` file: :meth:`read` reads a range with ``pread`` (into ``out`` or a
+    fresh array); fits stream a step by chunk (``_prefetched``: ``pread`` and a cast for
+    float32, views of memory-mapped windows for float64)."""
+
+    storage = "disk"
+
+    def __init__(self, path, name: str | None = None):
+        self.path = Path(path)
+        shape, self.dtype, self.offset = npy_header(self.path, name or self.path.stem, 2)
+        self.shape = shape
+        self._row = int(np.prod(self.shape[2:], dtype=np.int64)) * self.dtype.itemsize
+        self._fd: int | None = None
+
+    def origin(self, name):
+        return file_origin(self.path)
+
+    def _file(self) -> int:
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDONLY)
+        return self._fd
+
+    def read(self, h, start=0, stop=None, out=None):
+        K = self.shape[1]
+        stop = K if stop is None else min(stop, K)
+        shape = (stop - start,) + self.shape[2:]
+        if out is None or out.shape != shape or out.dtype != self.dtype:
+            out = np.empty(shape, dtype=self.dtype)
+        nbytes = out.nbytes
+        if nbytes:
+            pos = self.offset + (h * K + start) * self._row
+            view = memoryview(out.reshape(-1).view(np.uint8))
+            done = 0
+            while done < nbytes:  # pread may return less than asked for
+                got = os.preadv(self._file(), [view[done:]], pos + done)
+                if got <= 0:
+                    raise OSError(f"unexpected end of {self.path}")
+                done += got
+        return out
+
+    def lazy(self):
+        return np.load(self.path, mmap_mode="r", allow_pickle=False)
+
+    def take(self, idx):
+        return np.asarray(self.lazy()[:, idx])
+
+    def subset(self, idx, name):
+        return in_memory(self, idx, name)
+
+    def float64_chunks(self, h, chunk):
+        K = self.shape[1]
+        yield from _prefetched(self, h, K, chunk, (min(chunk, K),) + self.shape[2:])
+
+    def step_rows(self, h, chunk, out=None):
+        shape = self.shape[1:]
+        if out is None or out.shape != shape or out.dtype != np.float64:
+            out = np.empty(shape)
+        for s, e, rows in self.float64_chunks(h, chunk):
+            out[s:e] = rows
+        return out
+
+    def close(self):
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __del__(self):  # pragma: no cover - interpreter shutdown
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def __getstate__(self):  # picklable for process pools: reopen the file there
+        state = dict(self.__dict__)
+        state["_fd"] = None
+        return state
 
 
 def _prefetched(field: FileField, h, n, chunk, shape):

@@ -11,13 +11,21 @@ one range of trajectories at a time, wherever they are:
   each chunk is a view of it, with no copy (the resident memory stays bounded; ``pread`` where
   a file cannot be mapped); :meth:`FileField.read` reads a range with ``pread``,
   :meth:`FileField.lazy` gives a memory map of the whole file for browsing;
-- :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra).
+- :class:`DaskField` — a Dask array chunked along trajectories (the ``dask`` extra);
+- :class:`SparseRowsField` — sparse rows, one CSR matrix per step (tile coding);
+- :class:`MappedField` — features computed from stored observations by a feature map.
+
+Every kind implements the :class:`Field` protocol: besides the reads, the products a fit
+needs of a step (its rows whole or by chunk, ``Phi_h z``, sums formed where the numbers are),
+so :class:`StepSource` and the engine never ask which kind they hold. A new storage kind is a
+new module with a :class:`Field` subclass (and, if its next-state rows are stored its own
+way, a :class:`NextStates` subclass).
 
 Next-state features are computed where they need not be stored (:class:`StoredNext`,
 :class:`BehaviourNext` for trajectories, whose taken action's row is the next step's
 features, :class:`TableNext` for finite MDPs, :class:`MapNext` for stored observations and a
-feature map), and the engine asks for the next-state values ``V_{h+1}`` chunk by chunk through
-:meth:`StepSource.next_state_values`.
+feature map, :class:`SparseNext` for sparse rows), and the engine asks for the next-state
+values ``V_{h+1}`` chunk by chunk through :meth:`StepSource.next_state_values`.
 
 The on-disk format (format version 2) is a directory::
 
@@ -44,29 +52,32 @@ rewards' ``reward_range`` [min, max] checked by ``fit`` against ``r_max``, the r
 ``phi_row_sums`` [min, max] of the stored taken-action rows' sums, and ``reward_noise``
 when the rewards are noisy samples).
 
-The modules, each importing only those listed before it: ``_finite`` (what a fit checks in
-data not checked when the dataset was built, and the errors naming it), ``_fields`` (the
-fields, ``CHUNK``),
-``_reads`` (a file step streamed by chunk: ``pread`` and a cast, or views of
-memory-mapped windows, ``MAP_WINDOW``), ``_next``
-(the next-state forms), ``_format`` (manifest, ``.npy`` headers, atomic directories),
-``_behaviour`` (the behaviour form, ``SIDE_BLOCK``), ``_source`` (:class:`StepSource`),
-``_checks`` (validation), ``_directory`` (:func:`open_directory`, :func:`write_directory`),
-``_writer`` (:class:`DatasetWriter`). This package re-exports their names; a module-level
-constant is read where it is defined, so change it there (e.g. ``storage._reads.MAP_WINDOW``).
+The modules, each importing only those listed before it. Shared pieces: ``_finite`` (what a
+fit checks in data not checked when the dataset was built, and the errors naming it),
+``fields`` (the field protocol, ``CHUNK``), ``npy`` (``.npy`` headers). One module per storage
+kind: ``memory`` (:class:`ArrayField`), ``files`` (:class:`FileField`: a file step streamed by
+chunk, ``pread`` and a cast or views of memory-mapped windows, ``MAP_WINDOW``),
+``dask_arrays`` (:class:`DaskField`, products formed on the workers), then the next-state
+forms ``next_states`` (:class:`NextStates`, :class:`StoredNext`, :class:`TableNext`),
+``sparse_rows`` (:class:`SparseRowsField`, :class:`SparseNext`: one CSR matrix per step),
+``observations`` (:class:`MappedField`, :class:`MapNext`), ``format`` (manifest names, atomic
+directories), ``behaviour`` (the behaviour form, ``SIDE_BLOCK``), ``source``
+(:class:`StepSource`), ``checks`` (validation), ``manifest`` (what an open checks),
+``directory`` (:func:`open_directory`, :func:`write_directory`), ``writer``
+(:class:`DatasetWriter`). This package re-exports their public names; a module-level constant
+is read where it is defined, so change it there (e.g. ``storage.files.MAP_WINDOW``).
 """
 
-# The names code, tests, benchmarks and docs reach as ``storage.X`` (private ones included).
-from ._behaviour import (  # noqa: F401
+# The names code, tests, benchmarks and docs reach as ``storage.X``.
+from .behaviour import (  # noqa: F401
     BEHAVIOUR_VERSION,
     NEXT_FORMS,
     SIDE_BLOCK,
     BehaviourNext,
     RowFile,
-    _next_form,
     behaviour_split,
 )
-from ._checks import (  # noqa: F401
+from .checks import (  # noqa: F401
     SimplexFeatureWarning,
     check_features_chunk,
     check_map_actions,
@@ -77,29 +88,26 @@ from ._checks import (  # noqa: F401
     validate_source,
     warn_simplex,
 )
-from ._directory import open_directory, write_directory
-from ._fields import (  # noqa: F401
-    CHUNK,
-    ArrayField,
-    DaskField,
-    Field,
-    FileField,
-    MappedField,
-    _float_dtype,
-    widen_range,
-)
-from ._format import FORMAT_VERSION, GRAM_FILE, KIND, MANIFEST, SUMS_FILE  # noqa: F401
-from ._next import MapNext, NextStates, StoredNext, TableNext  # noqa: F401
-from ._reads import MAP_WINDOW, _prefetched  # noqa: F401
-from ._source import GRAM_CACHE_MAX_D, StepSource  # noqa: F401
-from ._writer import DatasetWriter
+from .dask_arrays import DaskField
+from .directory import open_directory, write_directory
+from .fields import CHUNK, Field, widen_range  # noqa: F401
+from .files import MAP_WINDOW, FileField  # noqa: F401
+from .format import FORMAT_VERSION, GRAM_FILE, KIND, MANIFEST, SUMS_FILE  # noqa: F401
+from .memory import ArrayField
+from .next_states import NextStates, StoredNext, TableNext
+from .observations import MapNext, MappedField
+from .source import GRAM_CACHE_MAX_D, StepSource  # noqa: F401
+from .sparse_rows import SparseNext, SparseRowsField, StackedSparse
+from .writer import DatasetWriter
 
 __all__ = [
     "FORMAT_VERSION",
     "CHUNK",
+    "Field",
     "ArrayField",
     "FileField",
     "DaskField",
+    "NextStates",
     "StoredNext",
     "BehaviourNext",
     "RowFile",
@@ -107,8 +115,12 @@ __all__ = [
     "TableNext",
     "MapNext",
     "MappedField",
+    "SparseRowsField",
+    "SparseNext",
+    "StackedSparse",
     "StepSource",
     "DatasetWriter",
+    "SimplexFeatureWarning",
     "open_directory",
     "write_directory",
     "step_major",

@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from ._fields import CHUNK, widen_range
+from .fields import CHUNK, widen_range
 
 
 class SimplexFeatureWarning(UserWarning):
@@ -65,7 +65,7 @@ def step_major(x, name: str, ndim: int, dtype=None) -> np.ndarray:
     No copy when ``x`` already is one in memory (e.g. ``a.transpose(1, 0, ...)`` of a
     C-contiguous ``(H, K, ...)`` array of float32 or float64); otherwise exactly one.
     """
-    from .._validation import as_array
+    from ..._validation import as_array
 
     raw = as_array(x, name) if not isinstance(x, str) else None
     if raw is None or raw.dtype.kind not in "biuf":
@@ -92,7 +92,7 @@ _F32_MAX = float(np.finfo(np.float32).max)
 def check_reward_noise(reward_noise) -> float:
     """``reward_noise`` (the rewards' noise level, ``OfflineDataset.reward_noise``) as a float
     ``>= 0``."""
-    from .._validation import check_scalar
+    from ..._validation import check_scalar
 
     return float(check_scalar(reward_noise, "reward_noise", low=0.0))
 

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import DATASET_DIRECTORY, DATASET_KIND, EMPTY_DIRECTORY, check_replaceable
-from ._fields import CHUNK
+from ..._io import DATASET_DIRECTORY, DATASET_KIND, EMPTY_DIRECTORY, check_replaceable
+from .fields import CHUNK
 
 FORMAT_VERSION = 2
 KIND = DATASET_KIND
@@ -150,9 +150,3 @@ def manifest_range(mf: dict, key: str) -> tuple[float, float] | None:
             and np.isfinite(rs).all() and rs[0] <= rs[1]):
         return float(rs[0]), float(rs[1])
     return None
-
-
-def _write_npy_header(fh, shape, dtype):
-    np.lib.format.write_array_header_2_0(
-        fh, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)), "fortran_order": False,
-             "shape": tuple(int(s) for s in shape)})

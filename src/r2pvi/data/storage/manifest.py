@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import file_error
-from ._fields import FileField, load_npy
-from ._format import FORMAT_VERSION, KIND, MANIFEST
+from ..._io import file_error
+from .files import FileField
+from .format import FORMAT_VERSION, KIND, MANIFEST
+from .npy import load_npy
 
 FIRST_DIRECTORY_VERSION = 2  # format 1 is the legacy single-file .npz
 NEXT_FIELDS = {"stored": ("next_phi",), "table": ("next_index", "next_table"),

@@ -5,17 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._fields import ArrayField, DaskField, Field, FileField, _as_float64
 from ._finite import (
     NonFiniteRows,
     Origin,
     array_origin,
     first_nonfinite,
-    map_origin,
     nonfinite_error,
-    subset_origin,
 )
-from ._reads import _prefetched
+from .fields import Field, _as_float64
+from .memory import ArrayField
 
 
 class NextStates:
@@ -32,6 +30,22 @@ class NextStates:
     def known(self, h, start=0, stop=None):
         """Known next-state action values ``(n, A)`` (NaN: learn), or None."""
         return None
+
+    def all_features(self, horizon: int) -> np.ndarray:
+        """Every step's next-state features, trajectory-major ``(K, H, A, d)``: a view where
+        they are stored, else computed (and so materialized)."""
+        return np.stack([self.features(h) for h in range(horizon)], axis=1)
+
+    def pooled_view(self, n: int):
+        """``(features (n, A, d), known (n, A) or None)`` of the first ``n`` step-major samples
+        as views of float64 arrays held in memory (pooled steps without a copy), or None."""
+        return None
+
+    def find_nonnegative(self, horizon: int, n: int, chunk: int) -> bool:
+        """Whether every used next-state feature (steps 0 to H-2) is ``>= 0``, read by
+        chunk (:attr:`nonnegative` when known)."""
+        return all(bool((self.features(h, s, min(s + chunk, n)) >= 0).all())
+                   for h in range(horizon - 1) for s in range(0, n, chunk))
 
     def values(self, h, qmax, n, chunk, out=None) -> np.ndarray:
         """``V_{h+1}`` at the K next states: ``qmax(features, known, nonneg) -> (n,)`` by chunk,
@@ -84,36 +98,35 @@ class StoredNext(NextStates):
     def features(self, h, start=0, stop=None):
         return self.next_phi.read(h, start, stop)
 
+    def all_features(self, horizon):
+        return self.next_phi.lazy().swapaxes(0, 1)
+
+    def pooled_view(self, n):
+        feats = self.next_phi.float64_array()
+        if feats is None:
+            return None
+        H, K = feats.shape[:2]
+        known = None
+        if self.next_values is not None:
+            known = np.asarray(self.next_values.lazy(), dtype=float).reshape(H * K, -1)[:n]
+        return feats.reshape((H * K,) + feats.shape[2:])[:n], known
+
     def known(self, h, start=0, stop=None):
         return None if self.next_values is None else _as_float64(
             self.next_values.read(h, start, stop))
 
     def values(self, h, qmax, n, chunk, out=None):
         field = self.next_phi
-        if isinstance(field, DaskField):
-            v = _dask_values(self, h, qmax)
+        v = field.remote_next_values(self, h, qmax)  # Dask: on the workers
+        if v is not None:
             if out is None:
                 return v
             out[...] = v
             return out
-        # Two reused buffers (a chunk read in the storage type, then cast to float64): no
-        # fresh allocation, so no page faults, per chunk.
+        # Chunks in float64 (reused buffers, or views of the stored numbers): no fresh
+        # allocation, so no page faults, per chunk.
         out = np.empty(n) if out is None else out
         shape = (min(chunk, n),) + field.shape[2:]
-        if isinstance(field, FileField):
-            reads = _prefetched(field, h, n, chunk, shape)
-        else:
-            reads = ((s, min(n, s + chunk), field.read(h, s, min(n, s + chunk)))
-                     for s in range(0, n, chunk))
-        f64 = np.empty(shape)
-
-        def float64_rows():
-            for s, e, rows in reads:
-                if not (rows.dtype == np.float64 and rows.flags.c_contiguous):
-                    np.copyto(f64[: e - s], rows)
-                    rows = f64[: e - s]
-                yield s, e, rows
-
         linear = getattr(qmax, "linear", None)
         lin = None
         if linear is not None and self.next_values is None and self.nonnegative is not None:
@@ -125,7 +138,7 @@ class StoredNext(NextStates):
             A, d = field.shape[2], field.shape[3]
             q = np.empty(shape[0] * A)
             check = getattr(qmax, "check", False)
-            for s, e, rows in float64_rows():
+            for s, e, rows in field.float64_chunks(h, chunk):
                 qa = np.matmul(rows.reshape(-1, d), u, out=q[: (e - s) * A]).reshape(e - s, A)
                 # a non-finite feature makes its product non-finite (before the clip, which
                 # would hide an infinity): one sum of the chunk's products
@@ -141,16 +154,13 @@ class StoredNext(NextStates):
                     np.max(qa, axis=1, out=out[s:e])
             np.clip(out, 0.0, upper, out=out)
             return out
-        for s, e, feats in float64_rows():
+        for s, e, feats in field.float64_chunks(h, chunk):
             out[s:e] = self._chunk_values(h, s, e, feats, qmax)
         return out
 
     def take(self, idx):
-        nv = None if self.next_values is None else ArrayField(
-            self.next_values.take(idx), subset_origin(self.next_values.origin("next_values")))
-        return StoredNext(ArrayField(self.next_phi.take(idx),
-                                     subset_origin(self.next_phi.origin("next_phi"))),
-                          nv, self.nonnegative)
+        nv = None if self.next_values is None else self.next_values.subset(idx, "next_values")
+        return StoredNext(self.next_phi.subset(idx, "next_phi"), nv, self.nonnegative)
 
 
 class TableNext(NextStates):
@@ -228,84 +238,3 @@ class TableNext(NextStates):
     def take(self, idx):
         return TableNext(ArrayField(self.index.take(idx)), self.table, self.known_table,
                          self.origins)
-
-
-class MapNext(NextStates):
-    """Stored next observations ``(H, K, ...)`` and a feature map evaluated chunk by chunk.
-
-    ``feature_map(observations (n, ...), actions (n,)) -> (n, d)``; ``known_values``, when
-    given, maps next observations ``(n, ...)`` to known action values ``(n, A)`` (NaN: learn).
-    """
-
-    def __init__(self, observations: Field, feature_map, n_actions: int, n_features: int,
-                 known_values=None):
-        self.observations, self.feature_map = observations, feature_map
-        self.n_actions, self.n_features = int(n_actions), int(n_features)
-        self.known_values = known_values
-        self.has_known_values = known_values is not None
-        self.nonnegative = None
-
-    def origin(self, known=False):
-        if not known:
-            return map_origin("features of the next observations")
-        if isinstance(self.known_values, Field):
-            return self.known_values.origin("next_values")
-        return Origin("the next_values function", "make it return finite values, or NaN "
-                      "where the value must be learned")
-
-    def features(self, h, start=0, stop=None):
-        obs = self.observations.read(h, start, stop)
-        n = obs.shape[0]
-        out = np.empty((n, self.n_actions, self.n_features))
-        for a in range(self.n_actions):
-            f = np.asarray(self.feature_map(obs, np.full(n, a)), dtype=float)
-            if f.shape != (n, self.n_features):
-                raise ValueError(
-                    f"feature_map returned shape {f.shape} for {n} next observations; "
-                    f"expected (n, d) = ({n}, {self.n_features})")
-            out[:, a] = f
-        return out
-
-    def known(self, h, start=0, stop=None):
-        if self.known_values is None:
-            return None
-        if isinstance(self.known_values, Field):  # stored known values (H, K, A)
-            return _as_float64(self.known_values.read(h, start, stop))
-        obs = self.observations.read(h, start, stop)
-        kv = np.asarray(self.known_values(obs), dtype=float)
-        if kv.shape != (obs.shape[0], self.n_actions):
-            raise ValueError(f"known_values returned shape {kv.shape}, expected (n, A)")
-        return kv
-
-    def take(self, idx):
-        kv = self.known_values
-        if isinstance(kv, Field):
-            kv = ArrayField(kv.take(idx))
-        return MapNext(ArrayField(self.observations.take(idx)), self.feature_map,
-                       self.n_actions, self.n_features, kv)
-
-
-def _dask_values(nxt: StoredNext, h, qmax):
-    """Next-state values computed on the Dask workers, one task per trajectory chunk."""
-    import dask.array as da
-
-    feats = nxt.next_phi.array[h]
-    nonneg = nxt.nonnegative
-
-    def block(f, k=None, block_info=None):
-        f = np.asarray(f, dtype=np.float64)
-        nn = bool((f >= 0).all()) if nonneg is None else nonneg
-        try:
-            with np.errstate(invalid="ignore", over="ignore"):  # not inherited from the fit
-                return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64),
-                            nn)
-        except NonFiniteRows as exc:  # the block's first trajectory, from Dask
-            start = 0 if block_info is None else block_info[0]["array-location"][0][0]
-            raise nxt.nonfinite(h, int(start), exc) from None
-
-    if nxt.next_values is None:
-        v = da.map_blocks(block, feats, drop_axis=[1, 2], dtype=np.float64)
-    else:
-        kv = nxt.next_values.array[h].rechunk((feats.chunks[0], -1))
-        v = da.map_blocks(block, feats, kv[:, :, None], drop_axis=[1, 2], dtype=np.float64)
-    return np.asarray(v.compute(), dtype=np.float64)

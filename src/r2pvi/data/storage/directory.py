@@ -8,12 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import _held_kind, file_error
-from ._behaviour import BEHAVIOUR_VERSION, BehaviourNext, RowFile, _next_form, _write_behaviour
-from ._checks import check_float32_range, check_map_actions
-from ._fields import Field, FileField, MappedField, load_npy, widen_range
+from ..._io import _held_kind, file_error
 from ._finite import file_origin
-from ._format import (
+from .behaviour import BEHAVIOUR_VERSION, BehaviourNext, RowFile, _next_form, _write_behaviour
+from .checks import check_float32_range, check_map_actions
+from .fields import Field, widen_range
+from .files import FileField
+from .format import (
     FORMAT_VERSION,
     GRAM_FILE,
     KIND,
@@ -22,20 +23,21 @@ from ._format import (
     _add_gram,
     _finish,
     _temp_dir,
-    _write_npy_header,
     check_target,
     clean_stale,
     manifest_range,
 )
-from ._manifest import (
+from .manifest import (
     check_dtype,
     check_stored_sums,
     read_manifest,
     stored_field,
     whole_field,
 )
-from ._next import MapNext, NextStates, StoredNext, TableNext
-from ._source import StepSource
+from .next_states import NextStates, StoredNext, TableNext
+from .npy import _write_npy_header, load_npy
+from .observations import MapNext, MappedField
+from .source import StepSource
 
 
 def open_directory(path, feature_map=None) -> StepSource:
@@ -126,6 +128,7 @@ def open_directory(path, feature_map=None) -> StepSource:
                       sums=sums, reward_range=manifest_range(mf, "reward_range"),
                       reward_noise=_manifest_noise(path, mf),
                       row_sums=manifest_range(mf, "phi_row_sums"),
+                      range_recorded=True,
                       stored_files={n: path / files[n] for n in ("gram", "phi_sums")
                                     if n in files})
 

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ._behaviour import _action_dtype, _behaviour_files, _next_form, behaviour_split
-from ._checks import check_features_chunk, check_reward_noise, step_major, warn_simplex
-from ._fields import FileField, _float_dtype, widen_range
-from ._format import (
+from .behaviour import _action_dtype, _behaviour_files, _next_form, behaviour_split
+from .checks import check_features_chunk, check_reward_noise, step_major, warn_simplex
+from .fields import _float_dtype, widen_range
+from .files import FileField
+from .format import (
     FORMAT_VERSION,
     GRAM_FILE,
     KIND,
@@ -20,9 +21,9 @@ from ._format import (
     _add_gram,
     _finish,
     _temp_dir,
-    _write_npy_header,
     check_target,
 )
+from .npy import _write_npy_header
 
 
 class DatasetWriter:
@@ -100,7 +101,7 @@ class DatasetWriter:
 
     def __init__(self, path, *, horizon, n_features, n_actions, dtype="float32",
                  check_simplex=True, overwrite=False, next_form="full", reward_noise=0.0):
-        from .._validation import check_scalar
+        from ..._validation import check_scalar
 
         self.path = Path(os.fspath(path))
         self.horizon = check_scalar(horizon, "horizon", low=1, integer=True)

@@ -8,10 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fields import ArrayField, Field, FileField, _as_float64, npy_header
 from ._finite import Origin, array_origin, file_origin, nonfinite_error
-from ._format import _write_npy_header
-from ._next import NextStates, StoredNext
+from .fields import Field, _as_float64
+from .memory import ArrayField
+from .next_states import NextStates, StoredNext
+from .npy import _write_npy_header, npy_header
 
 NEXT_FORMS = ("full", "behaviour")
 BEHAVIOUR_VERSION = 1  # version of the "behaviour" next-state field set in the manifest
@@ -180,13 +181,12 @@ class BehaviourNext(NextStates):
         src = stage[0, :n]
         any_miss = bool(miss.any())
         if h + 1 < self.phi.shape[0] and not (any_miss and miss.all()):
-            got = (self.phi.read(h + 1, start, stop, out=src) if isinstance(self.phi, FileField)
-                   else self.phi.read(h + 1, start, stop))
+            got = self.phi.read(h + 1, start, stop, out=src)  # into src, or a view
             if got is not src:
                 np.copyto(src, got)
         if any_miss:
             src[miss] = self._side(h, start, stop, before)
-        if A == 2 and isinstance(self.rest, FileField):
+        if A == 2:  # read straight into the stage (files), or copied from a view
             dst = stage[1, :n].reshape(n, 1, d)
             got = self.rest.read(h, start, stop, out=dst)
             if got is not dst:
