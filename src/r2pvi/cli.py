@@ -204,10 +204,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser(
         "demo",
-        help="ten-second tour: PEVI and R2PVI (TV, KL, chi^2) returns under a dynamics shift",
+        help="one-second tour: PEVI and R2PVI (TV, KL, chi^2) returns under a dynamics shift",
         description="Fit PEVI and the three R2PVI variants on small datasets of the paper's "
         "simulated linear MDP and print their exact returns, side by side, in test "
-        "environments with increasing shifts of the dynamics.",
+        "environments with increasing shifts of the dynamics. Every divergence runs at the "
+        "same three lam: 0.1, 0.01 and 0.001 times the value range of the data.",
     )
     demo.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                       help="show the full traceback of an error")
