@@ -146,3 +146,19 @@ def test_ci_checks_the_built_package_after_the_readme_test_command():
     for step in ("python -m build", "twine check --strict", "python -m venv",
                  "r2pvi\" --version", "r2pvi\" -V", "unset PYTHONPATH", "r2pvi[gym]"):
         assert step in check, step
+
+
+def test_gamma_is_introduced_as_the_ridge_parameter_not_a_discount_on_every_page():
+    # RL readers take gamma for a discount; r2pvi's gamma is the paper's ridge parameter
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+             *sorted((ROOT / "docs" / "user_guide").glob("*.md"))]
+    checked = 0
+    for page in pages:
+        text = " ".join(page.read_text().replace("#", " ").split())
+        first = re.search(r"\bgamma\b", text)
+        if first is None:
+            continue
+        checked += 1
+        near = text[max(0, first.start() - 200): first.start() + 1000]
+        assert "ridge parameter" in near and "not a discount" in near, page.name
+    assert checked >= 10
