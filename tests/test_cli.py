@@ -1,10 +1,12 @@
 """The command line: help and the demo run end to end."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import r2pvi
@@ -14,30 +16,80 @@ from r2pvi.cli import main
 def test_demo_shows_returns_under_a_shift_side_by_side(capsys):
     assert main(["demo", "--trajectories", "100", "--seed", "1"]) == 0
     out = capsys.readouterr().out
-    for name in ("PEVI", "R2PVI-TV", "R2PVI-KL", "R2PVI-chi2", "q = 0", "q = 1"):
+    for name in ("PEVI", "q = 0", "q = 1", "nominal optimum"):
         assert name in out
+    for div in ("TV", "KL", "chi2"):
+        for fraction in ("0.1 R", "0.01 R", "0.001 R"):
+            assert re.search(rf"^R2PVI-{div} +lam=\S+ \({fraction}\)", out, re.M), (div, out)
+        assert re.search(rf"^  {div} +(\d\.\d{{3}} +){{3}}(above|not above) PEVI", out, re.M)
+    # the rule that sets lam is printed, and it reads the data only
+    assert "fractions (0.1, 0.01, 0.001) of R = (H - 1) x the largest reward" in out
+    assert "never the test" in out and "Why KL and chi^2 need a smaller lam than TV" in out
 
 
-def test_demo_numbers_are_exact_returns_and_robustness_shows():
+def test_demo_lams_are_fractions_of_the_data_value_range_not_of_test_results():
+    from r2pvi.demo import demo_returns
+    from r2pvi.envs import SimulatedLinearMDP
+
+    res = demo_returns(seed=0, n_datasets=3, qs=(0.0, 1.0))
+    env = SimulatedLinearMDP(xi_norm=0.3)
+    datasets = [env.collect(100, seed=np.random.default_rng(c))
+                for c in np.random.SeedSequence(0).spawn(3)]
+    R = (env.horizon - 1) * max(ds.rewards.max() for ds in datasets)
+    assert res.value_range == R == 2.0  # the goal state pays 1, two steps remain
+    assert sorted({(d, f) for d, f, _ in res.settings.values()}) == sorted(
+        (d, f) for d in ("tv", "kl", "chi2") for f in (0.1, 0.01, 0.001))
+    for _, fraction, lam in res.settings.values():
+        assert lam == pytest.approx(fraction * R)
+    other = demo_returns(seed=0, n_datasets=3, qs=(0.5,))  # other tests, same data: same lam
+    assert other.settings == res.settings
+
+
+def test_demo_numbers_are_exact_returns_and_each_divergence_shows_robustness():
     from r2pvi.demo import demo_returns
     from r2pvi.envs import SimulatedLinearMDP
     from r2pvi.evaluation import expected_return, optimal_policy
 
-    out = demo_returns(seed=0, n_datasets=3, qs=(0.0, 1.0))
+    res = demo_returns(seed=0, qs=(0.0, 1.0))  # the demo's own 10 datasets
     env = SimulatedLinearMDP(xi_norm=0.3)
     best = optimal_policy(env)
-    nominal = out["nominal optimum (knows the model)"][0]
+    nominal = res.returns["nominal optimum (knows the model)"][0]
     assert nominal == pytest.approx([expected_return(env.perturbed(0.0), best),
                                      expected_return(env.perturbed(1.0), best)])
-    pevi, tv = out["PEVI (non-robust)"].mean(0), out["R2PVI-TV   lam=0.1"].mean(0)
+    pevi = res.returns["PEVI (non-robust)"].mean(0)
     assert nominal[0] >= pevi[0] - 1e-12  # nothing beats the optimum without shift
-    assert abs(tv[1] - tv[0]) < abs(pevi[1] - pevi[0])  # R2PVI-TV holds up under the shift
+    for div in ("tv", "kl", "chi2"):
+        rows = {f: res.returns[name].mean(0) for name, (d, f, _) in res.settings.items()
+                if d == div}
+        smallest = rows[min(rows)]
+        # at the smallest lam every divergence keeps more than PEVI under the largest shift
+        # and loses less from q = 0 to q = 1 (with lam = 0.1 alone, KL and chi^2 did not)
+        assert smallest[1] > pevi[1] + 0.05, (div, rows, pevi)
+        assert abs(smallest[1] - smallest[0]) < abs(pevi[1] - pevi[0]), (div, rows, pevi)
 
 
 def test_help_lists_commands():
     res = subprocess.run([sys.executable, "-m", "r2pvi", "--help"], capture_output=True,
                          text=True, check=True)
     assert "demo" in res.stdout
+
+
+@pytest.mark.parametrize("flag", ["--version", "-V"])
+def test_version_flag_prints_the_installed_version_and_exits_0(flag, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main([flag])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert out == f"r2pvi {r2pvi.__version__}\n"
+    assert re.fullmatch(r"r2pvi \d+\.\d+\.\d+\S*\n", out)
+
+
+def test_version_flag_from_the_command_line():
+    env = {**os.environ, "PYTHONPATH": SRC}
+    res = subprocess.run([sys.executable, "-m", "r2pvi", "--version"], capture_output=True,
+                         text=True, env=env, timeout=120)
+    assert res.returncode == 0 and res.stderr == ""
+    assert res.stdout == f"r2pvi {r2pvi.__version__}\n"
 
 
 # --------------------------------------------------------------------------- usage errors
