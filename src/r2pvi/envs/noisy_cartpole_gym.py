@@ -107,6 +107,9 @@ class NoisyCartPoleEnv(CartPoleEnv):
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed=None, options=None):
+        """Start an episode: theta ~ U(-0.2, 0.2), the other three components ~ U(-0.05,
+        0.05); ``options`` set parameters first (as ``set_params``). Returns
+        ``(observation, {})``."""
         if options:
             self.set_params(**options)
         gymnasium.Env.reset(self, seed=seed)
@@ -119,6 +122,14 @@ class NoisyCartPoleEnv(CartPoleEnv):
         return self.state.astype(np.float32), {}
 
     def step(self, action):
+        """Push the cart left (0) or right (1) for one Euler step with the protocol's noise.
+
+        Returns ``(observation (4,) float32, reward 1.0, terminated, truncated, {})``: the
+        reward is 1 on every step, the failing one included; ``terminated`` when
+        ``|x| > 2.4`` or ``|theta| > 12`` degrees (or the state is no longer finite),
+        ``truncated`` at ``max_steps``. Stepping an episode that is over raises
+        ``RuntimeError``.
+        """
         if self.state is None:
             raise RuntimeError("call reset() before step()")
         if self._over:
