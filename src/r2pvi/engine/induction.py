@@ -33,7 +33,7 @@ from ..data import OfflineDataset
 from ..data.storage._finite import FIELDS, NonFiniteRows
 from ..duals._scratch import release
 from ..duals.gram import GramFactor
-from ..duals.operator import RidgeExpectation
+from ..duals.operator import ExpectationOperator, RidgeExpectation
 from .q import FittedModel, _NextValue
 from .steps import ChunkedRidgeExpectation, _factor, _streams, pooled_steps
 
@@ -62,11 +62,15 @@ class StepContext:
 class StepRule:
     """How an algorithm turns next-step values into this step's weights ``w_h (d,)``.
 
-    Subclasses implement :meth:`__call__`. ``E`` is the step's ridge expectation operator
-    and ``v`` the next-step values at the K sampled next states.
+    Subclasses implement :meth:`__call__`. ``E`` is the step's expectation operator
+    (:class:`~r2pvi.duals.ExpectationOperator`: in a fit the step's ridge estimate, whether
+    its rows are held or streamed; any operator works, e.g. the true factors of a known
+    model), ``v`` the next-step values at its n points.
     """
 
-    def __call__(self, E: RidgeExpectation, v: np.ndarray, ctx: StepContext) -> np.ndarray:
+    def __call__(self, E: ExpectationOperator, v: np.ndarray, ctx: StepContext) -> np.ndarray:
+        """The weights ``w_h (d,)``: the rule's dual under ``E`` at the values ``v (n,)``,
+        using only the operator interface."""
         raise NotImplementedError
 
     def factor_params(self, h: int) -> np.ndarray | None:
