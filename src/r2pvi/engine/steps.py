@@ -62,10 +62,6 @@ class ChunkedRidgeExpectation(RidgeExpectation):
     def __init__(self, source, h: int, gamma: float, weights=None,
                  nonnegative_features=None, buffers: dict | None = None):
         self.source, self.h, self.gamma = source, int(h), float(gamma)
-        self.weights = weights
-        self.nonnegative_features = nonnegative_features
-        self.n_points, self.n_dims = source.n_trajectories, source.n_features
-        self.primal_dense = True
         self.buffers = {} if buffers is None else buffers
         self._factor = None
         self._rows = None
@@ -77,6 +73,13 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         # Whether the step's features are known finite: checked when the dataset was built,
         # or by the sums of a pass (see _check_sums)
         self._finite = "phi" in getattr(source, "checked", FIELDS)
+        super().__init__(_Rows((source.n_trajectories, source.n_features)), None, weights,
+                         nonnegative_features)
+
+    def _hold(self, phi, chol) -> None:
+        """Nothing is held yet: the factor and the rows are formed when first asked
+        (:attr:`factor`, :attr:`phi`); dense rows, the primal form."""
+        self.primal_dense = True
 
     # ------------------------------------------------------------------ lazy pieces
     @property
@@ -123,7 +126,7 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         with ``Lambda`` (stored with the data, kept from an earlier pass, or, for rows that
         sum to 1, the row sums of the Gram matrix ``Phi^T W Phi 1_d``): a ``d x d`` solve; a
         pass of its own only when none is known."""
-        if getattr(self, "_total", None) is None:
+        if self._total is None:
             if self._sums is None and self.weights is None:
                 self._sums = self.source.phi_sums(self.h)
             if self._sums is None:
