@@ -29,8 +29,10 @@ class ChunkedRidgeExpectation(RidgeExpectation):
     source: ``Lambda = sum_c Phi_c^T W_c Phi_c + gamma I`` and
     ``E(y) = Lambda^{-1} sum_c Phi_c^T W_c y_c`` (Algorithm 1, lines 3-4), all sums in float64.
 
-    Nothing of the step's features is held: each call reads them once, a chunk at a time
-    (``source.phi_chunks``); the first call also forms ``Lambda`` in the same pass, and the
+    Nothing of the step's features is held: each request (``E(y)``, or the columns asked for
+    together by :meth:`apply_pair`, :meth:`with_total_weights`,
+    :meth:`pair_with_total_weights`) reads them once, a chunk at a time
+    (``source.phi_chunks``); the first request also forms ``Lambda`` in the same pass, and the
     columns registered with :meth:`include` ride along with it (the engine registers the
     rewards and the value moments, so a TV or PEVI step reads its features once). ``E(1)``
     (:meth:`total_weights`, :meth:`with_total_weights`: KL) is ``Lambda^{-1}`` of the column
@@ -86,7 +88,7 @@ class ChunkedRidgeExpectation(RidgeExpectation):
     def factor(self) -> GramFactor:
         """The primal factor of ``Lambda`` (one pass over the features when first asked)."""
         if self._factor is None:
-            self._pass(None)
+            self._pass([])
         return self._factor
 
     @property
@@ -133,56 +135,80 @@ class ChunkedRidgeExpectation(RidgeExpectation):
                 if self._rows is not None:
                     return super().total_weights()
                 self._want_sums = True
-                self._pass(None)
+                self._pass([])
             self._total = self._solve_sums(self._sums)
         return self._total.copy()
+
+    def include(self, y: np.ndarray) -> None:
+        """Register ``y (n,)`` or ``(n, m)``: its product ``Phi^T W y`` is accumulated with
+        the next read of the features, and the next ``E(y)`` of the same array object costs
+        no read. The operator keeps ``y`` (so its id cannot be reused by another array) until
+        that ``E(y)`` hands out the result and drops it; ``y`` must not be modified in
+        between."""
+        self._pending.append(y)
+
+    # ------------------------------------------------------------------ the operator
+    # Every request goes through _apply: the columns of one request (and E(1)) share one
+    # read of the step's features. With the rows in memory, the pair requests take the base
+    # class's fused products.
+    def __call__(self, y: np.ndarray) -> np.ndarray:
+        return self._apply(y)[0]
+
+    def apply_pair(self, y1: np.ndarray, y2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(E(y1), E(y2))`` in one read of the step's features."""
+        if self._rows is not None:
+            return super().apply_pair(y1, y2)
+        return self._apply(y1, y2)
 
     def with_total_weights(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(E(y), E(1))`` in one read of the step's features (none for ``E(1)`` when the
         column sums are known)."""
-        if self._rows is None:
-            self._want_sums = True  # accumulated with E(y) if not known
-        return self(y), self.total_weights()
+        return self._apply(y, total=True)
 
     def pair_with_total_weights(self, y1: np.ndarray, y2: np.ndarray):
         """``(E(y1), E(y2), E(1))`` in one read of the step's features (``E(1)`` from the
         column sums: known, or accumulated in the same read)."""
         if self._rows is not None:
             return super().pair_with_total_weights(y1, y2)
-        if not any(y2 is p for p in self._pending):
-            self.include(y2)
-        e1, s = self.with_total_weights(y1)
-        return e1, self(y2), s
+        return self._apply(y1, y2, total=True)
 
-    def include(self, y: np.ndarray) -> None:
-        """Register ``y (n,)`` or ``(n, m)``: its product ``Phi^T W y`` is accumulated with
-        the next pass, and ``E(y)`` (the same array object) then costs no read."""
-        self._pending.append(y)
+    def _apply(self, *ys: np.ndarray, total: bool = False) -> tuple[np.ndarray, ...]:
+        """``E(y)`` for each ``y`` in ``ys``, then ``E(1)`` when ``total``: one read of the
+        step's features (no read with the rows in memory) for the columns not computed yet,
+        together with ``Lambda`` when it is not formed, every registered column, and the
+        column sums when ``E(1)`` needs them; a registered column's result is handed out
+        (and dropped) instead of computed again."""
+        if total and self._rows is None:
+            self._want_sums = True  # accumulated with the columns if not known
+        new = []
+        for y in ys:
+            if not any(y is c for c in new) and not any(y is p for p in self._pending) and \
+                    not any(y is done for done, _ in self._done):
+                new.append(y)
+        fresh = self._pass(new) if new or any(
+            y is p for y in ys for p in self._pending) else []
+        out = []
+        for k, y in enumerate(ys):
+            j = next((j for j in range(k) if ys[j] is y), None)
+            i = next((i for i, c in enumerate(new) if c is y), None)
+            if j is not None:  # a column asked for twice: its own copy each time
+                out.append(out[j].copy())
+            else:
+                out.append(self._take(y) if i is None else fresh[i])
+        if total:
+            out.append(self.total_weights())
+        return tuple(out)
 
-    # ------------------------------------------------------------------ the operator
-    def apply_pair(self, y1: np.ndarray, y2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(E(y1), E(y2))`` in one read of the step's features."""
-        if self._rows is not None:
-            return super().apply_pair(y1, y2)
-        for y in (y1, y2):
-            if not any(y is p for p in self._pending) and not any(
-                    y is done for done, _ in self._done):
-                self.include(y)
-        return self(y1), self(y2)
+    def _take(self, y: np.ndarray) -> np.ndarray:
+        """The result of the registered column ``y`` (computed by a pass), dropped from the
+        operator."""
+        i = next(i for i, (done, _) in enumerate(self._done) if done is y)
+        return self._done.pop(i)[1]
 
-    def __call__(self, y: np.ndarray) -> np.ndarray:
-        if any(p is y for p in self._pending):
-            self._pass(None)
-        for done, value in self._done:
-            if done is y:
-                return value.copy()
-        if self._rows is not None:
-            return super().__call__(y)
-        return self._pass(y)
-
-    def _pass(self, y):
+    def _pass(self, new: list) -> list:
         """One read of the step's features: ``Lambda`` (if not formed yet) and ``Phi^T W y``
-        for ``y`` and every registered column; returns ``E(y)`` (None without ``y``)."""
+        for each column ``y`` of ``new`` and every registered one; returns ``E(y)`` of the
+        columns of ``new`` (the registered ones wait in ``_done`` for :meth:`_take`)."""
         d = self.n_dims
         # Rows summing to 1 (validated): Phi^T W 1 = Phi^T W Phi 1_d, the row sums of the
         # Gram matrix (a d x d sum, no product per chunk); see StepSource.unit_rows.
@@ -199,16 +225,12 @@ class ChunkedRidgeExpectation(RidgeExpectation):
         # its regression; not for rules that never use it (one more matrix-vector product per
         # chunk, measured 2-5% of a TV fit in memory).
         colsum = np.zeros(d) if self._sums is None and self._want_sums else None
-        cols = ([] if y is None else [y]) + self._pending
+        cols = list(new) + self._pending
         if not cols and self._factor is not None and colsum is None:
-            return None
+            return []
         cols = [np.asarray(c, dtype=float) for c in cols]
         if self._rows is not None:  # the rows are in memory: no read
-            out = [RidgeExpectation.__call__(self, c) for c in cols]
-            self._done.extend(zip(self._pending, out[len(out) - len(self._pending):],
-                                  strict=True))
-            self._pending = []
-            return out[0] if y is not None else None
+            return self._keep([RidgeExpectation.__call__(self, c) for c in cols], len(new))
         # The products as the in-memory operator forms them (the same bits for one chunk):
         # y^T Phi for one unweighted vector, Phi^T (w y) otherwise.
         gram = np.zeros((d, d)) if self._factor is None else None
@@ -265,11 +287,14 @@ class ChunkedRidgeExpectation(RidgeExpectation):
                 out.append(linv.T @ (linv @ a))
             else:
                 out.append(self._factor.solve(a))
-        registered = self._pending
-        self._done.extend(zip(registered, out[len(out) - len(registered):], strict=True))
-        self._pending = []
-        return out[0] if y is not None else None
+        return self._keep(out, len(new))
 
+    def _keep(self, out: list, n_new: int) -> list:
+        """Keep the results of the registered columns (``out[n_new:]``) for :meth:`_take`;
+        return the others."""
+        self._done.extend(zip(self._pending, out[n_new:], strict=True))
+        self._pending = []
+        return out[:n_new]
 
     def _check_sums(self, sums, rows=None) -> None:
         """Refuse the step's features when a sum formed from them (the Gram matrix, ``Phi^T
