@@ -77,7 +77,7 @@ def _q_step(phi, weights_h, kind, beta, inv_diag, ellip, upper, known=None, nonn
     flat, lead = flat_rows(phi)  # one GEMM, not a batch of small products
     if kind == "l1" and beta != 0.0:
         scale = -beta * np.sqrt(inv_diag)
-        if nonneg:  # |phi| = phi: one matrix-vector product (an n x 2 GEMM costs ~3x one)
+        if nonneg:  # |phi| = phi: one matrix-vector product, cheaper than an n x 2 GEMM
             q = np.asarray(flat @ (weights_h + scale))
         else:
             q = np.asarray(flat @ weights_h) + abs(flat) @ scale

@@ -223,7 +223,7 @@ class ChunkedRidgeExpectation(RidgeExpectation):
             self._sums = self.source.phi_sums(self.h)
         # Phi^T W 1 when a rule asked for E(1) (with_total_weights: KL), in the same pass as
         # its regression; not for rules that never use it (one more matrix-vector product per
-        # chunk, measured 2-5% of a TV fit in memory).
+        # chunk; its cost: docs/benchmarks.md).
         colsum = np.zeros(d) if self._sums is None and self._want_sums else None
         cols = list(new) + self._pending
         if not cols and self._factor is not None and colsum is None:
