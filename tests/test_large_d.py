@@ -230,13 +230,13 @@ def test_sparse_rows_reach_the_operator_without_densifying(monkeypatch):
     rng = np.random.default_rng(7)
     _, sparse = _both(*_data(rng, 10, 2, 40))
     seen = []
-    real = engine.GramFactor
+    real = engine.steps.GramFactor
 
     def spy(phi, *args, **kwargs):
         seen.append(sp.issparse(phi))
         return real(phi, *args, **kwargs)
 
-    monkeypatch.setattr(engine, "GramFactor", spy)
+    monkeypatch.setattr(engine.steps, "GramFactor", spy)
     DRPVI(0.3).fit(sparse)
     assert seen and all(seen)
     _, _, nxt, _ = sparse.step(0)
@@ -441,24 +441,24 @@ def test_pooled_factors_one_gram_matrix(monkeypatch):
     rng = np.random.default_rng(13)
     ds = OfflineDataset.from_features(*_data(rng, 20, 5, 8))
     calls = []
-    real = engine.GramFactor
+    real = engine.steps.GramFactor
 
     def count(phi, *args, **kwargs):
         calls.append(phi.shape)
         return real(phi, *args, **kwargs)
 
-    monkeypatch.setattr(engine, "GramFactor", count)
+    monkeypatch.setattr(engine.steps, "GramFactor", count)
     DRPVI(0.2).set_params(time_homogeneous=True).fit(ds)
     assert calls == [(80, 8)]  # one factorization of the (H - 1) K = 80 pooled transitions
     calls.clear()
-    real_primal = engine._primal_factor  # per-step fits accumulate Lambda_h by chunk
+    real_primal = engine.steps._primal_factor  # per-step fits accumulate Lambda_h by chunk
 
     def count_primal(gram, gamma, weights, shape):
         calls.append(tuple(shape))
         return real_primal(gram, gamma, weights, shape)
 
-    monkeypatch.setattr(engine, "_primal_factor", count_primal)
-    monkeypatch.setattr(engine, "GramFactor", real)
+    monkeypatch.setattr(engine.steps, "_primal_factor", count_primal)
+    monkeypatch.setattr(engine.steps, "GramFactor", real)
     DRPVI(0.2).fit(ds)
     assert calls == [(20, 8)] * 5
     with pytest.raises(TypeError, match="time_homogeneous"):

@@ -32,7 +32,7 @@ def saved(tmp_path_factory):
 def full_path_fit(name, ds, monkeypatch):
     """The fit with each step's (K, d) features in memory (the engine's unchunked path)."""
     with monkeypatch.context() as m:
-        m.setattr(engine, "_streams", lambda *a: False)
+        m.setattr(engine.induction, "_streams", lambda *a: False)
         return ESTIMATORS[name]().fit(ds)
 
 

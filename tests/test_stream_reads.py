@@ -71,13 +71,13 @@ def test_next_state_values_by_one_product_equal_the_definition(penalty, beta, A,
         feats = rng.normal(size=(2, n, A, d)) if signed else rng.random((2, n, A, d))
         w = rng.normal(size=d) * 3.0
         inv_diag = rng.random(d)
-        raw = engine._max_over_actions(engine._q_step(feats[1], w, penalty, beta, inv_diag,
+        raw = engine.q._max_over_actions(engine.q._q_step(feats[1], w, penalty, beta, inv_diag,
                                                       ellip, np.inf, None, not signed))
         if (raw < 0).sum() > 5 and (raw > 0).sum() > 20:
             break
     upper = float(np.quantile(raw[raw > 0], 0.7))
-    qmax = engine._NextValue(w, penalty, beta, inv_diag, ellip, upper)
-    truth = engine._max_over_actions(engine._q_step(feats[1], w, penalty, beta, inv_diag,
+    qmax = engine.q._NextValue(w, penalty, beta, inv_diag, ellip, upper)
+    truth = engine.q._max_over_actions(engine.q._q_step(feats[1], w, penalty, beta, inv_diag,
                                                     ellip, upper, None, not signed))
     assert (truth == 0.0).any() and (truth == upper).any()
     assert ((truth > 0) & (truth < upper)).any()

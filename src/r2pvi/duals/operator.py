@@ -190,15 +190,22 @@ class RidgeExpectation(ExpectationOperator):
 
     def __init__(self, phi, chol, weights: np.ndarray | None = None,
                  nonnegative_features: bool | None = None):
+        self.weights = weights
+        self.nonnegative_features = nonnegative_features  # phi >= 0 (None: check when needed)
+        self.n_points, self.n_dims = phi.shape
+        self._total = None  # E(1), formed when first asked
+        self._hold(phi, chol)
+
+    def _hold(self, phi, chol) -> None:
+        """Hold the rows and the factor of ``Lambda``. A subclass that streams its rows
+        overrides this to form them when first asked (``phi``, ``factor``, ``chol`` and
+        ``primal_dense`` are then its properties or attributes)."""
         self.phi = phi
         if isinstance(chol, GramFactor):
             self.factor = chol
         else:
-            self.factor = GramFactor.from_cholesky(phi, chol, weights)
+            self.factor = GramFactor.from_cholesky(phi, chol, self.weights)
         self.chol = self.factor.chol
-        self.weights = weights
-        self.nonnegative_features = nonnegative_features  # phi >= 0 (None: check when needed)
-        self.n_points, self.n_dims = phi.shape
         # The fast feature-space paths below need dense rows and the primal factor; otherwise
         # the explicit (d x n) weight matrix, which the dual form gets for n^2 d flops.
         self.primal_dense = self.factor.form == "primal" and not sp.issparse(phi)
@@ -234,7 +241,7 @@ class RidgeExpectation(ExpectationOperator):
         if not (self.primal_dense and self.weights is None):  # one regression of both
             both = self(np.stack([y1, y2], axis=1))
             return both[:, 0].copy(), both[:, 1].copy(), self.total_weights()
-        ones = getattr(self, "_total", None) is None
+        ones = self._total is None
         ys = buffer("ridge.pair", (2 + ones, self.n_points))
         ys[0], ys[1] = y1, y2
         if ones:
@@ -250,7 +257,7 @@ class RidgeExpectation(ExpectationOperator):
         """``E(1) = Lambda^{-1} Phi^T W 1`` (computed once per operator): for dense primal
         rows the column sums ``Phi^T W 1`` (one pass) and the ``d x d`` solve of
         :meth:`__call__`."""
-        if getattr(self, "_total", None) is None:
+        if self._total is None:
             if self.primal_dense:
                 w = np.ones(self.n_points) if self.weights is None else self.weights
                 self._total = self._solve_sums(w @ self.phi)

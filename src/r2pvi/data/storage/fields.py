@@ -9,10 +9,8 @@ import numpy as np
 from ._finite import Origin, array_origin
 
 # Trajectories per chunk when streaming a step: about 1 MB (taken actions) and 2 MB (next
-# states, A = 2) of float64 per chunk for d = 30, about one core's L2. Measured at K = 1e6
-# from the page cache (TV and KL fits from disk, min of 3-4 interleaved rounds, shared
-# machine): 4096 rows 8-12% less CPU than 2048 (per-chunk Python and call overhead), 8192
-# no better than 4096.
+# states, A = 2) of float64 per chunk for d = 30, about one core's L2; fewer rows pay more
+# per-chunk Python and call overhead, more gain nothing (measured: docs/storage.md).
 CHUNK = 1 << 12
 
 

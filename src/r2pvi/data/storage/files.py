@@ -109,13 +109,10 @@ def _prefetched(field: FileField, h, n, chunk, shape):
     (the writers of this module never do: they write a new directory and rename it into
     place).
 
-    Why (measured with ``benchmarks/bench_storage.py disk``; the numbers and what was tried
-    and dropped are in docs/storage.md, "Read path by storage type"): for float32 files,
-    mapping and unmapping cost ~0.25 us per 4 KiB page, more than ``pread``'s copy into a
-    cached buffer (TV 1.71-2.24 s of CPU against 1.93-2.65 s cast from mapped windows at
-    K = 1e6); for float64 files the views save the copy (TV about 1.2x one read at K = 1e6
-    against ~1.4x with a copy out of the map). A reader thread, ``posix_fadvise(WILLNEED)``,
-    ``MAP_POPULATE``, larger windows and L2-sized sub-chunks did not help.
+    Why: for float32 files, mapping and unmapping the pages costs more than ``pread``'s copy
+    into a cached buffer; for float64 files the views save the copy. The measurements
+    (``benchmarks/bench_storage.py disk``) and the alternatives that did not pay are in
+    docs/storage.md, "Read path by storage type".
 
     A view that escapes (a caller that keeps a chunk against the contract) never dangles:
     NumPy's view holds a buffer export of the ``mmap``, so ``mmap.close`` raises
