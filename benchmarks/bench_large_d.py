@@ -218,9 +218,9 @@ def pooled_floor(ds, gamma=1.0):
     with its Cholesky factor, then at every step one pass over the H K A stored next-state
     features (V_{h+1} at every pooled next state) and one over the H K rows (the regression):
     ``gram + H * (one matrix-vector product each)``."""
-    from r2pvi.engine import _pooled_steps
+    from r2pvi.engine import pooled_steps
 
-    phi, rewards, next_phi, _ = _pooled_steps(ds)
+    phi, rewards, next_phi, _ = ds._source.pooled(pooled_steps(ds.horizon))
     flat = next_phi.reshape(-1, next_phi.shape[-1])
     w = np.full(phi.shape[1], 1.0 / phi.shape[1])
 
