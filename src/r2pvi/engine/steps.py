@@ -350,9 +350,10 @@ def _factor(source, h, phi, gamma, sw, form) -> GramFactor:
 
 
 def pooled_steps(horizon: int) -> int:
-    """How many steps a time-homogeneous fit pools: ``0 .. H-2``, whose next states are data
-    (row ``H-1`` of the next-state data is ignored by every constructor, and files store zeros
-    there); the single step when ``H = 1`` (its next states are never used: ``V_H = 0``).
+    """How many steps a time-homogeneous fit pools: steps ``0`` to ``H-2``, whose next states
+    are data (row ``H-1`` of the next-state data is ignored by every constructor, and files
+    store zeros there); the single step when ``H = 1`` (its next states are never used:
+    ``V_H = 0``).
 
     >>> pooled_steps(20), pooled_steps(1)
     (19, 1)
