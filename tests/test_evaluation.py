@@ -1,9 +1,12 @@
-"""Exact evaluation against Monte Carlo, brute force, independent primals and closed forms."""
+"""Exact evaluation against Monte Carlo, brute force, independent primals and closed forms;
+the evaluation functions' errors and warnings."""
 
 import itertools
+import warnings
 
 import numpy as np
 import pytest
+from extras import require
 from primal import chi2_primal, general_primal, smooth_primal, tv_primal
 from scipy.optimize import linprog, minimize
 from scipy.special import xlogy
@@ -433,3 +436,18 @@ def test_put_option_lattice_agrees_with_monte_carlo(put_estimator):
 def test_evaluation_errors_name_the_argument(call, err, match):
     with pytest.raises(err, match=match):
         call()
+
+
+def test_one_episode_warns_that_it_has_no_standard_error():
+    require("gymnasium")
+    import gymnasium as gym
+
+    from r2pvi.evaluation import evaluate_policy
+
+    with pytest.warns(UserWarning, match="n_episodes >= 2"):
+        mean, se = evaluate_policy(gym.make("CartPole-v1"), "uniform", 1, seed=0, max_steps=5)
+    assert np.isnan(se) and mean > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isfinite(evaluate_policy(gym.make("CartPole-v1"), "uniform", 2, seed=0,
+                                           max_steps=5)[1])
