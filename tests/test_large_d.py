@@ -414,29 +414,6 @@ def test_pooled_equals_per_step_when_every_step_sees_the_same_transitions(name):
                                    atol=1e-10)
 
 
-def test_pooled_views_and_stacked_copies_agree(tmp_path):
-    """In memory the pooled rows are views of the step-major arrays (no copy); read from a
-    dataset directory, or held as sparse rows, they are stacked step by step: the same fit."""
-    rng = np.random.default_rng(13)
-    phi, rewards, next_phi = _data(rng, 20, 4, 6)
-    next_values = np.full(next_phi.shape[:-1], np.nan)
-    next_values[:5, 1] = 0.5  # known values travel with their rows
-    ds = OfflineDataset.from_features(phi, rewards, next_phi, next_values)
-    views = ds._source.pooled_views(3)
-    assert views is not None and np.shares_memory(views[0], ds._source.phi.array)
-    stacked = ds.save(tmp_path / "ds")
-    opened = OfflineDataset.open(stacked)
-    assert opened._source.pooled_views(3) is None
-    sparse = SparseOfflineDataset.from_rows(
-        [sp.csr_matrix(phi[:, h]) for h in range(4)], rewards,
-        [sp.csr_matrix(next_phi[:, h].reshape(-1, 6)) for h in range(4)], 2, next_values)
-    for make in (lambda: R2PVI("tv", 0.3, beta=0.1), lambda: DRPVI(0.2, beta=0.1)):
-        want = _fit(make, ds, time_homogeneous=True).weights_
-        for other in (opened, sparse):
-            np.testing.assert_allclose(_fit(make, other, time_homogeneous=True).weights_,
-                                       want, atol=1e-10)
-
-
 def test_pooled_factors_one_gram_matrix(monkeypatch):
     rng = np.random.default_rng(13)
     ds = OfflineDataset.from_features(*_data(rng, 20, 5, 8))
