@@ -76,3 +76,12 @@ def set_chunk(ds, rows):
     """Make fits of ``ds`` read each step ``rows`` trajectories at a time (a private knob of
     the step source: no public API sets it)."""
     ds._source.chunk = rows
+
+
+def small_arrays(k, H=3, d=4, A=2, seed=0):
+    """``(phi, rewards, next_phi)`` of ``k`` trajectories on the simplex (default H = 3, d = 4,
+    A = 2)."""
+    rng = np.random.default_rng(seed)
+    phi = rng.dirichlet(np.ones(d), size=(k, H))
+    next_phi = rng.dirichlet(np.ones(d), size=(k, H, A))
+    return phi, rng.uniform(0.0, 1.0, (k, H)), next_phi

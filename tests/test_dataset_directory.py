@@ -22,10 +22,11 @@ from storage_helpers import (
     K,
     assert_same_fit,
     make_arrays,
+    small_arrays,
     stored_datasets,
 )
 
-from r2pvi import OfflineDataset
+from r2pvi import DatasetWriter, OfflineDataset
 
 
 @pytest.fixture(scope="module")
@@ -118,3 +119,25 @@ def test_table_dataset_round_trips_through_the_directory_format(tmp_path):
         OfflineDataset.from_next_state_table(table[idx, act], idx * 0.1, idx + 1, table)
     with pytest.raises(ValueError, match="known_values must have shape"):
         OfflineDataset.from_next_state_table(table[idx, act], idx * 0.1, idx, table, known[:2])
+
+
+def test_float32_save_refuses_finite_values_beyond_its_range(tmp_path):
+    """Finite values beyond float32's range (which would become inf, the Gram matrices and the
+    fits NaN) are refused before anything is written, by the save, by ``from_features`` with
+    ``dtype="float32"`` and by the writer's append, which leaves the writer usable."""
+    phi, rewards, next_phi = small_arrays(10)
+    phi[3, 1, 2] = 1e39
+    ds = OfflineDataset.from_features(phi, rewards, next_phi, check_simplex=False)
+    with pytest.raises(ValueError, match="beyond float32's range.*dtype='float64'"):
+        ds.save(tmp_path / "d", dtype="float32")
+    assert not any(tmp_path.iterdir())  # nothing left behind
+    ds.save(tmp_path / "d64", dtype="float64")  # float64 keeps them
+    with pytest.raises(ValueError, match="beyond float32's range"):
+        OfflineDataset.from_features(phi, rewards, next_phi, check_simplex=False,
+                                     dtype="float32")
+    with DatasetWriter(tmp_path / "w", horizon=3, n_features=4, n_actions=2,
+                       check_simplex=False) as w:
+        with pytest.raises(ValueError, match="phi holds finite values beyond float32"):
+            w.append(phi, rewards, next_phi)
+        w.append(*small_arrays(5))
+    assert OfflineDataset.open(tmp_path / "w").n_trajectories == 5

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from storage_helpers import A, D, H, make_arrays
+from storage_helpers import A, D, H, make_arrays, small_arrays
 
 import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset
@@ -76,3 +76,21 @@ def test_a_dropped_writer_leaves_nothing_behind(tmp_path):
     del w
     gc.collect()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_empty_append_with_mismatched_fields_is_refused(tmp_path):
+    with DatasetWriter(tmp_path / "w", horizon=3, n_features=4, n_actions=2) as w:
+        phi, rewards, next_phi = small_arrays(3)
+        with pytest.raises(ValueError, match="0 trajectories but rewards"):
+            w.append(phi[:0], rewards, next_phi[:0])
+        w.append(phi, rewards, next_phi)
+
+
+def test_writer_records_reward_noise_and_empty_appends_check_next_values(tmp_path):
+    with DatasetWriter(tmp_path / "w", horizon=3, n_features=4, n_actions=2,
+                       reward_noise=0.1) as w:
+        phi, rewards, next_phi = small_arrays(3)
+        with pytest.raises(ValueError, match="0 trajectories but next_values"):
+            w.append(phi[:0], rewards[:0], next_phi[:0], next_values=np.zeros((7, 1)))
+        w.append(phi, rewards, next_phi)
+    assert OfflineDataset.open(tmp_path / "w").reward_noise == 0.1

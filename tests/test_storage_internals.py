@@ -13,6 +13,7 @@ import json
 import numpy as np
 import pytest
 from helpers import A, D, H, linear_data
+from storage_helpers import small_arrays
 from test_next_form_behaviour import H as BEH_H
 from test_next_form_behaviour import both_forms, same_bits
 
@@ -21,6 +22,7 @@ from r2pvi.data.storage import behaviour
 from r2pvi.storage import BehaviourNext
 
 
+# ---------------------------------------------------------------- the reward check
 def test_reward_weights_are_checked_through_the_rewards_they_give(monkeypatch):
     data, phi, r, nxt, theta = linear_data()
     with pytest.raises(ValueError, match="phi_h\\^T theta_h of reward_weights reach"):
@@ -63,6 +65,112 @@ def test_reward_range_comes_from_validation_the_manifest_or_one_read(tmp_path, m
     (path / "manifest.json").write_text(json.dumps(manifest))
     assert OfflineDataset.open(path).reward_range == expect
     assert data.subset(np.arange(5)).reward_range == (float(r[:5].min()), float(r[:5].max()))
+
+
+def _float32_simplex(seed, K=4000, H=4, d=6, A=2):
+    rng = np.random.default_rng(seed)
+    phi = rng.random((K, H, d), dtype=np.float32)
+    phi /= phi.sum(-1, keepdims=True)  # sums 1 within ~1e-7 in float64: not unit rows
+    nphi = rng.random((K, H, A, d), dtype=np.float32)
+    nphi /= nphi.sum(-1, keepdims=True)
+    return phi, nphi
+
+
+def test_directories_record_row_sums_and_the_reward_check_reads_no_features(tmp_path):
+    """float32 simplex rows (sums 1 within ~1e-7, not unit rows): both writers record the
+    range of the stored rows' sums (``phi_row_sums``), and ``fit``'s reward check with
+    ``reward_weights`` settles every step from it, reading no feature. The bound is
+    rigorous: rewards above ``r_max`` are still refused, and a manifest without the record
+    still reads the rows."""
+    from r2pvi import R2PVI
+    from r2pvi.algorithms import base
+
+    phi, nphi = _float32_simplex(0)
+    H, d = phi.shape[1], phi.shape[2]
+    theta = np.random.default_rng(1).uniform(0.0, 0.99, (H, d))
+    rewards = np.einsum("khd,hd->kh", phi, theta)
+    with DatasetWriter(tmp_path / "w", horizon=H, n_features=d, n_actions=2) as w:
+        w.append(phi, rewards, nphi)
+    OfflineDataset.from_features(phi.astype(float), rewards, nphi.astype(float),
+                                 check_simplex=False).save(tmp_path / "s", dtype="float32")
+    for name in ("w", "s"):
+        mf = json.loads((tmp_path / name / "manifest.json").read_text())
+        lo, hi = mf["phi_row_sums"]
+        sums = phi.astype(np.float64).sum(-1)
+        assert lo == pytest.approx(sums.min(), abs=1e-15) and lo < 1.0 - 1e-9
+        assert hi == pytest.approx(sums.max(), abs=1e-15) and hi > 1.0 + 1e-9
+        ds = OfflineDataset.open(tmp_path / name)
+        reads = []
+        original = type(ds)._step_product
+
+        def spy(self, h, t, original=original, reads=reads):
+            reads.append(h)
+            return original(self, h, t)
+
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(type(ds), "_step_product", spy)
+            R2PVI("tv", 1.0, reward_weights=theta, r_max=1.0).fit(ds)
+            assert reads == []
+            too_big = theta.copy()
+            too_big[2, 0] = 1.5  # rewards up to ~1.5 on the rows that weigh feature 0
+            with pytest.raises(ValueError, match="r_max"):
+                base.check_reward_range(ds, 1.0, too_big)
+    # a manifest without the record: the rows are read, the answer is the same
+    mf = json.loads((tmp_path / "w" / "manifest.json").read_text())
+    del mf["phi_row_sums"]
+    (tmp_path / "w" / "manifest.json").write_text(json.dumps(mf))
+    ds = OfflineDataset.open(tmp_path / "w")
+    assert ds._source.phi_row_sums is None
+    reads = []
+    original = type(ds)._step_product
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(type(ds), "_step_product",
+                  lambda self, h, t: (reads.append(h), original(self, h, t))[1])
+        base.check_reward_range(ds, 1.0, theta)
+    assert reads == list(range(H))
+
+
+def test_validated_arrays_know_their_row_sums_and_the_reward_check_reads_no_features():
+    """In memory too: validation records phi's row-sum range (float32-rounded simplex rows,
+    not unit rows), so ``reward_weights`` are checked without a product per step; without the
+    simplex check (no row sums) every step is read."""
+    from r2pvi.algorithms import base
+
+    phi, nphi = _float32_simplex(2)
+    H, d = phi.shape[1], phi.shape[2]
+    theta = np.random.default_rng(3).uniform(0.0, 0.99, (H, d))
+    rewards = np.einsum("khd,hd->kh", phi, theta)
+    for check, expected in ((True, []), (False, list(range(H)))):
+        ds = OfflineDataset.from_features(phi.astype(float), rewards, nphi.astype(float),
+                                          check_simplex=check)
+        assert (ds._source.phi_row_sums is not None) == check
+        assert not ds._source.unit_rows
+        reads = []
+        original = type(ds)._step_product
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(type(ds), "_step_product",
+                      lambda self, h, t, reads=reads, original=original:
+                      (reads.append(h), original(self, h, t))[1])
+            base.check_reward_range(ds, 1.0, theta)
+        assert reads == expected
+
+
+# ---------------------------------------------------------------- the writer
+def test_a_bad_append_names_the_append_and_step_and_leaves_the_writer_as_it_was(tmp_path):
+    with DatasetWriter(tmp_path / "w", horizon=3, n_features=4, n_actions=2) as w:
+        w.append(*small_arrays(4))
+        flags = list(w._flags)
+        phi, rewards, next_phi = small_arrays(6, seed=1)
+        phi[2, 1] = -phi[2, 1]  # negative features at step 0 would flip a flag
+        phi[5, 2, 0] = np.nan  # and the chunk fails at step 2
+        with pytest.raises(ValueError, match=r"append #1 \(trajectories 4\.\.9.*step h = 2"):
+            w.append(phi, rewards, next_phi)
+        assert w._flags == flags
+        w.append(*small_arrays(0))  # an empty batch (a stream's tail): nothing, no error
+        w.append(*small_arrays(2, seed=2))
+    ds = OfflineDataset.open(tmp_path / "w")
+    assert ds.n_trajectories == 6
+    assert json.loads((tmp_path / "w" / "manifest.json").read_text())["nonnegative_phi"] is True
 
 
 # ---------------------------------------------------------------- the behaviour next-state form
