@@ -23,7 +23,6 @@ from hypothesis import strategies as st
 
 import r2pvi
 from r2pvi import PEVI, DatasetWriter, OfflineDataset
-from r2pvi.data.storage import format as _format
 from r2pvi.sparse import SparseOfflineDataset
 
 K, H, A, D = 12, 3, 2, 4
@@ -145,7 +144,7 @@ def test_a_save_that_fails_at_the_swap_keeps_the_old_dataset(tmp_path, monkeypat
             raise OSError(28, "No space left on device")
         return real(src, dst)
 
-    monkeypatch.setattr(_format.os, "replace", failing)
+    monkeypatch.setattr(os, "replace", failing)  # the rename r2pvi's saves make
     with pytest.raises(OSError, match="No space left"):
         new.save(target, overwrite=True)
     monkeypatch.undo()
@@ -310,13 +309,12 @@ def test_an_overwrite_killed_mid_swap_gives_the_old_dataset_back_on_open(tmp_pat
     proc = _run_child(f"""
         import os, signal, numpy as np
         from r2pvi import OfflineDataset
-        from r2pvi.data.storage import format as _format
         real = os.replace
         def replace(src, dst):
             if ".tmp-" in str(src):  # the old dataset moved aside: die before the new one lands
                 os.kill(os.getpid(), signal.SIGKILL)
             return real(src, dst)
-        _format.os.replace = replace
+        os.replace = replace
         rng = np.random.default_rng(5)
         ds = OfflineDataset.from_features(rng.random(({K}, {H}, {D})), rng.random(({K}, {H})),
                                           rng.random(({K}, {H}, {A}, {D})), check_simplex=False)

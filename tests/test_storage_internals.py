@@ -9,6 +9,7 @@ are tested through the public API in the files named for them (see docs/contribu
 """
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -153,6 +154,29 @@ def test_validated_arrays_know_their_row_sums_and_the_reward_check_reads_no_feat
                       (reads.append(h), original(self, h, t))[1])
             base.check_reward_range(ds, 1.0, theta)
         assert reads == expected
+
+
+# ---------------------------------------------------------------- what was checked when built
+def test_in_memory_datasets_are_checked_once_when_built():
+    """The constructors' errors are unchanged, and what they checked is not checked again."""
+    K = 24
+    rng = np.random.default_rng(0)
+    phi = rng.dirichlet(np.ones(D), (K, H))
+    nphi = rng.dirichlet(np.ones(D), (K, H, A))
+    rewards = rng.uniform(0.05, 0.95, (K, H))
+    bad = phi.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="phi contains 1 NaN"):
+        OfflineDataset.from_features(bad, rewards, nphi)
+    ds = OfflineDataset.from_features(phi, rewards, nphi)
+    assert ds._source.checked == {"phi", "rewards", "next"}
+    assert ds.subset(np.arange(3))._source.checked == {"phi", "rewards", "next"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        obs = OfflineDataset.from_observations(
+            np.zeros((K, H, 1)), np.zeros((K, H), int), rewards, np.zeros((K, H, 1)),
+            lambda x, a: np.ones((len(x), 2)), A)
+    assert obs._source.checked == {"rewards"}  # the features are computed while fitting
 
 
 # ---------------------------------------------------------------- the writer
