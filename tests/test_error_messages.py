@@ -13,7 +13,6 @@ from r2pvi import DRPVI, DRVIL, PEVI, OfflineDataset
 from r2pvi.features import StateAggregation, cross_actions
 
 
-# ---------------------------------------------------------------- 3. errors name the fix
 def test_loaders_name_the_right_loader(tmp_path):
     data, *_ = linear_data()
     npz, folder = data.save(tmp_path / "data.npz"), data.save(tmp_path / "dir")

@@ -139,8 +139,8 @@ def test_robust_policy_values_agree_with_an_independent_primal_dp(divergence):
 
 def test_tv_robust_value_of_the_simulated_mdp_by_hand():
     # Values at step 2: x1..x3 pay p(a) <= 0.5, x4 0, x5 1; min V = 0 (the fail state x4),
-    # so every factor's TV dual is E[min(V, lam)]. With lam = 0.3 (see the derivation in
-    # the report of issue 4): V_0(x1) = 0.5 * 0.999 * 0.3 + 0.5 * 0.3.
+    # so every factor's TV dual is E[min(V, lam)]. With lam = 0.3:
+    # V_0(x1) = 0.5 * 0.999 * 0.3 + 0.5 * 0.3.
     Q, V = robust_values(SimulatedLinearMDP(), "tv", 0.3)
     assert V[0, 0] == pytest.approx(0.5 * 0.999 * 0.3 + 0.5 * 0.3, abs=1e-14)
     assert V[1, 4] == pytest.approx(1.3, abs=1e-14)  # x5 at step 1: 1 + min(V_2(x5), 0.3)

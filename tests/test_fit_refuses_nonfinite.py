@@ -73,7 +73,7 @@ def test_a_fit_refuses_nan_or_inf_written_into_a_saved_file(tmp_path, dtype, val
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_a_negative_reward_written_into_rewards_npy_is_refused_despite_the_manifest(
         tmp_path, dtype):
-    """The manifest's reward_range no longer holds: the fit checks the rewards it reads."""
+    """The manifest's reward_range is out of date: the fit checks the rewards it reads."""
     path = _saved(tmp_path / "ds", dtype)
     _damage(path, "rewards.npy", (2, 3), -0.5)
     ds = OfflineDataset.open(path)

@@ -25,7 +25,7 @@ EPS = 2.0**-53
 
 class TwoRegressions(ExpectationOperator):
     """``E`` whose ``(E(y), E(1))`` is formed from two regressions, ``E(y) - E(y - 1)``: the
-    form before the column sums (the reference)."""
+    reference form."""
 
     def __init__(self, E):
         self.E, self.n_dims, self.n_points = E, E.n_dims, E.n_points

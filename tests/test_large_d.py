@@ -1,5 +1,6 @@
-"""Issue 14: large feature spaces — the dual (Woodbury) form, sparse rows, pooled steps and
-cached acting, each against an independent dense computation."""
+"""Large feature spaces: the dual (Woodbury) form, sparse rows, pooled steps and cached
+acting, each against an independent dense computation. (That pooled steps are views of the
+arrays in memory is tested with the storage internals, in test_storage_internals_chunks.py.)"""
 
 import numpy as np
 import pytest
@@ -564,10 +565,9 @@ def test_sparse_feature_maps_give_sparse_episode_datasets():
 
 @pytest.mark.parametrize("name", ["pevi", "tv", "drvil"])
 def test_pooled_fits_ignore_the_last_steps_next_states(name, tmp_path):
-    """Row H-1 of the next-state data "is ignored and may hold anything" (from_features): a
-    pooled fit used it (NaN weights in memory, DRVI-L crashed, files' zeros gave other
-    numbers). Now memory with NaN there, memory with other values and the saved dataset
-    (which stores zeros) give the same fit."""
+    """Row H-1 of the next-state data "is ignored and may hold anything" (from_features), so
+    pooled fits must not use it: memory with NaN there, memory with other values and the
+    saved dataset (which stores zeros) give the same, finite fit."""
     rng = np.random.default_rng(21)
     K, H, d = 12, 3, 4
     phi, rewards, next_phi = _data(rng, K, H, d)

@@ -159,8 +159,8 @@ def test_dask_products_are_summed_on_the_workers(cluster_client):
 @pytest.mark.parametrize("stored", [True, False])
 def test_chunked_kl_step_reads_once_with_or_without_stored_column_sums(tmp_path, stored):
     """The column sums ride along with the first read of a step (or come from the file):
-    ``E(1)`` costs no pass of its own; older files without ``phi_sums.npy`` still open and fit
-    the same numbers, and the sums a fit forms are kept for the next one."""
+    ``E(1)`` costs no pass of its own; directories without the optional ``phi_sums.npy`` open
+    and fit the same numbers, and the sums a fit forms are kept for the next one."""
     import json
 
     rng = np.random.default_rng(5)
@@ -171,7 +171,7 @@ def test_chunked_kl_step_reads_once_with_or_without_stored_column_sums(tmp_path,
     path = mem.save(tmp_path / "ds")
     sums = np.load(path / "phi_sums.npy")
     np.testing.assert_allclose(sums, phi.sum(axis=0), rtol=1e-12)
-    if not stored:  # a dataset written before the column sums were stored
+    if not stored:  # a directory without the optional column sums
         mf = json.loads((path / "manifest.json").read_text())
         del mf["files"]["phi_sums"]
         (path / "manifest.json").write_text(json.dumps(mf))
