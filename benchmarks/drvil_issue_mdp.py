@@ -22,7 +22,7 @@ from r2pvi.engine import backward_induction
 
 # The issue's MDP is defined once, with the regression tests that use it.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_guarantees_constrained import issue_mdp  # noqa: E402
+from test_guarantees_constrained import fail_state_mdp  # noqa: E402
 
 
 class Spy(KLBallRule):
@@ -52,7 +52,7 @@ def main():
     b_min = {"auto": "auto", "none": None}.get(args.b_min.lower(), None)
     if args.b_min.lower() not in ("auto", "none"):
         b_min = float(args.b_min)
-    env = issue_mdp()
+    env = fail_state_mdp()
     H, d = env.horizon, env.n_features
     above, errs, largest = 0, [], 0.0
     for seed in range(args.datasets):

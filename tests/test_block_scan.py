@@ -277,8 +277,8 @@ def test_sort_order_is_a_sorting_permutation(seed, n, kind):
 @pytest.mark.parametrize("n", [5, 40, 3000])
 def test_sort_order_sees_a_nan_whose_payload_lies_in_the_index_bits(sign, n):
     """A NaN whose mantissa bits all lie in the last bits replaced by the index has the key
-    of an infinity of its sign: it shares that infinity's run and can hide in the middle of
-    the sort (found in review: [0.5, 1, 2, nan, inf]). Still exactly ``np.argsort``."""
+    of an infinity of its sign: it shares that infinity's run and could hide in the middle of
+    the sort (as in ``[0.5, 1, 2, nan, inf]``). The order is still exactly ``np.argsort``'s."""
     rng = np.random.default_rng(n)
     v = rng.normal(size=n)
     payload = np.array([(0x7FF0000000000001 if sign > 0 else -0x000FFFFFFFFFFFFF)],

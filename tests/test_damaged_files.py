@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from storage_helpers import small_arrays
 
 import r2pvi
 from r2pvi import DRVIL, PEVI, R2PVI, OfflineDataset
@@ -66,6 +67,18 @@ def _refused(path, *names, fit=True, **kw):
 
 
 # ---------------------------------------------------------------- the manifest
+@pytest.mark.parametrize("bad", [0, 1, -3, 2.0, "2", True, None])
+def test_damaged_format_versions_are_refused_with_the_right_advice(tmp_path, bad):
+    """A format version that is not an integer >= 2 is damage, not a newer format: refused,
+    and the message does not advise upgrading r2pvi."""
+    path = OfflineDataset.from_features(*small_arrays(3)).save(tmp_path / "d")
+    mf = json.loads((path / "manifest.json").read_text())
+    (path / "manifest.json").write_text(json.dumps({**mf, "format_version": bad}))
+    with pytest.raises(ValueError, match="must be an integer >= 2") as err:
+        OfflineDataset.open(path)
+    assert "upgrade" not in str(err.value)
+
+
 @pytest.mark.parametrize("key", ["files", "shapes", "next", "horizon", "n_features",
                                  "n_actions", "n_trajectories"])
 def test_a_manifest_missing_a_key_names_the_manifest_and_the_key(template, tmp_path, key):
@@ -376,4 +389,3 @@ def test_integer_valued_float_actions_still_run():
     mean, _ = evaluate_policy(gym.make("CartPole-v1"), lambda h, o: np.ones(len(o)), 2, seed=0,
                               max_steps=5)
     assert mean == 5.0
-

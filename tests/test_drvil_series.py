@@ -4,8 +4,8 @@ The grid and the Newton steps of the KL-ball dual evaluate each factor at its ow
 Chebyshev moments (``_cheb_*``: ``b`` from ``max y / _CHEB_X`` up to the values' scale) or
 from Taylor moments kept at a few shared nodes (``_series_*``: smaller ``b``) instead of ``n``
 exponentials per factor; the reference is the exact per-factor evaluation
-(``_per_factor_exact``) and, end to end, the solver with both switched off (the local grid of
-exact evaluations, as before).
+(``_per_factor_exact``) and, end to end, the solver with both switched off (a local grid of
+exact evaluations).
 """
 
 import math
@@ -114,7 +114,7 @@ def test_series_order_meets_its_truncation_bound(x_max):
 
 def reference(monkeypatch, *args, **kwargs):
     """``kl_constrained`` with the Chebyshev and Taylor moments switched off: a local grid of
-    exact evaluations and exact per-factor Newton steps (the solver before the series)."""
+    exact evaluations and exact per-factor Newton steps (the reference solver)."""
     with monkeypatch.context() as m:
         m.setattr(C._KLProblem, "_series_possible", lambda self: False)
         return kl_constrained(*args, **kwargs)
@@ -247,8 +247,8 @@ def _hermite_full(t0, t1, g0, d0, dd0, g1, d1, dd1, iters=12):
 @settings(max_examples=200, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.sampled_from([1e-3, 1.0, 1e3]))
 def test_hermite_argmax_stops_on_cycles_where_the_full_iteration_ends(seed, scale):
-    """Rows that bounce between the ends of [0, 1] no longer keep all rows iterating: the
-    result (NaN pattern and maximizers) is the full iteration's."""
+    """Rows that bounce between the ends of [0, 1] stop (they do not keep all rows
+    iterating), and the result (NaN pattern and maximizers) is the full iteration's."""
     rng = np.random.default_rng(seed)
     m = 30
     t0 = rng.normal(size=m)
@@ -398,7 +398,7 @@ def test_cheb_objective_is_relatively_accurate_for_mass_at_the_top():
     """A ridge factor whose mass sits at the largest values (``E_i[e^{-y/b}]`` as small as
     ``e^{-6}`` at the range's lower end): the Chebyshev route's objective within 2e-13
     (relative) of the exact evaluation across the range (the bound of ``_CHEB_X``'s comment;
-    measured 2.3e-14). With the range down to ``max y / 16`` it was 5e-10 off."""
+    a range down to ``max y / 16`` would be 5e-10 off)."""
     for seed in range(10):
         rng = np.random.default_rng(seed)
         n, d = 400, 5
@@ -422,10 +422,10 @@ def test_cheb_objective_is_relatively_accurate_for_mass_at_the_top():
 
 
 def test_interior_maximum_between_coarse_grid_points_is_found():
-    """A reviewer's case (seed 395; DRVI-L's defaults: normalized form, b_min = spread /
-    log n): factor 0's objective is not concave and peaks between b_min and the next coarse
-    grid point; the result is the dense search's maximum (the first Chebyshev version returned
-    3.7e-5 less; the solver before it found it by the chance of another factor's node)."""
+    """Seed 395 with DRVI-L's defaults (normalized form, b_min = spread / log n): factor 0's
+    objective is not concave and peaks between b_min and the next coarse grid point; the
+    result is the dense search's maximum (a search of the coarse grid alone returns 3.7e-5
+    less)."""
     rng = np.random.default_rng(395)
     n = int(rng.choice([20, 60, 200]))
     d = int(rng.choice([4, 8, 16]))
@@ -452,8 +452,8 @@ def test_interior_maximum_between_coarse_grid_points_is_found():
                                     (1e-4, 0.1508)])
 def test_exact_two_point_distribution_is_exact(p, rho):
     """Exact distributions keep the relatively accurate Taylor path: mass p at V = 0, 1 - p at
-    V = 1 (a reviewer's cases, where the first Chebyshev version was 5e-10 off; the last has
-    its maximizer b = 0.17 inside what would be the Chebyshev range): the result
+    V = 1 (cases where the Chebyshev route would be 5e-10 off; the last has its maximizer
+    b = 0.17 inside what would be the Chebyshev range): the result
     equals the maximum of ``-b log(p + (1 - p) e^{-1/b}) - b rho`` found by a bounded scalar
     search, to 1e-14."""
     from scipy.optimize import minimize_scalar

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from helpers import D, linear_data
 from primal import chi2_primal, smooth_primal, tv_primal
 from scipy.special import xlogy
 
@@ -354,3 +355,17 @@ def test_save_refuses_custom_divergences_and_load_checks_class(tmp_path):
         R2PVI.load(path)
     with pytest.raises(NotFittedError, match="not fitted"):
         PEVI().save(tmp_path / "q")
+
+
+def test_string_options_are_case_insensitive():
+    data, *_ = linear_data()
+    for make, upper, lower in ((lambda p: R2PVI("tv", penalty=p), "L1", "l1"),
+                               (lambda p: PEVI(penalty=p), "Elliptical", "elliptical"),
+                               (lambda v: R2PVI("tv", v_min=v), "DATA", "data"),
+                               (lambda v: R2PVI(v), "KL", "kl")):
+        a, b = make(upper).fit(data), make(lower).fit(data)
+        assert np.array_equal(a.weights_, b.weights_)
+        phi_all = data.next_phi[:4, 0]
+        assert np.array_equal(a.q_values(phi_all, 0), b.q_values(phi_all, 0))
+    policy = PEVI().fit(data).as_policy(lambda o, a: np.eye(D)[a % D], beyond_horizon="Last")
+    assert policy.beyond_horizon == "last"

@@ -1,9 +1,12 @@
-"""Exact evaluation against Monte Carlo, brute force, independent primals and closed forms."""
+"""Exact evaluation against Monte Carlo, brute force, independent primals and closed forms;
+the evaluation functions' errors and warnings."""
 
 import itertools
+import warnings
 
 import numpy as np
 import pytest
+from extras import require
 from primal import chi2_primal, general_primal, smooth_primal, tv_primal
 from scipy.optimize import linprog, minimize
 from scipy.special import xlogy
@@ -136,8 +139,8 @@ def test_robust_policy_values_agree_with_an_independent_primal_dp(divergence):
 
 def test_tv_robust_value_of_the_simulated_mdp_by_hand():
     # Values at step 2: x1..x3 pay p(a) <= 0.5, x4 0, x5 1; min V = 0 (the fail state x4),
-    # so every factor's TV dual is E[min(V, lam)]. With lam = 0.3 (see the derivation in
-    # the report of issue 4): V_0(x1) = 0.5 * 0.999 * 0.3 + 0.5 * 0.3.
+    # so every factor's TV dual is E[min(V, lam)]. With lam = 0.3:
+    # V_0(x1) = 0.5 * 0.999 * 0.3 + 0.5 * 0.3.
     Q, V = robust_values(SimulatedLinearMDP(), "tv", 0.3)
     assert V[0, 0] == pytest.approx(0.5 * 0.999 * 0.3 + 0.5 * 0.3, abs=1e-14)
     assert V[1, 4] == pytest.approx(1.3, abs=1e-14)  # x5 at step 1: 1 + min(V_2(x5), 0.3)
@@ -433,3 +436,18 @@ def test_put_option_lattice_agrees_with_monte_carlo(put_estimator):
 def test_evaluation_errors_name_the_argument(call, err, match):
     with pytest.raises(err, match=match):
         call()
+
+
+def test_one_episode_warns_that_it_has_no_standard_error():
+    require("gymnasium")
+    import gymnasium as gym
+
+    from r2pvi.evaluation import evaluate_policy
+
+    with pytest.warns(UserWarning, match="n_episodes >= 2"):
+        mean, se = evaluate_policy(gym.make("CartPole-v1"), "uniform", 1, seed=0, max_steps=5)
+    assert np.isnan(se) and mean > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isfinite(evaluate_policy(gym.make("CartPole-v1"), "uniform", 2, seed=0,
+                                           max_steps=5)[1])

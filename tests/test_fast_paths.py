@@ -88,8 +88,8 @@ def test_hermite_argmax_starts_no_lower_than_its_grid(coef, t0, h):
 
 def test_hermite_argmax_passes_a_stationary_inflection():
     """p(t) = t^3 - t^5 on [-0.25, 1.25]: p' = 0 at the inflection t = 0 (where Newton from
-    the left end stopped before the start grid, returning ~-5e-5) and at the maximum
-    t = sqrt(3/5)."""
+    the left end could stop, returning ~-5e-5) and at the maximum t = sqrt(3/5), which is
+    found."""
     got = _hermite_of(np.polynomial.Polynomial([0, 0, 0, 1, 0, -1]), -0.25, 1.25)
     assert abs(got - np.sqrt(0.6)) < 1e-9
 

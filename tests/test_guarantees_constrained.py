@@ -1,5 +1,5 @@
 """Numerical guarantees of the constrained (uncertainty-ball) estimators DRPVI, VA-DRPVI and
-DRVI-L (issue 9, items 1, 5, 6).
+DRVI-L.
 
 For any data, each learned factor value ``w_{h,i}`` is finite, lies in the known range of
 ``V_{h+1}`` (``[0, (H - h - 1) r_max]``), never exceeds the plain ridge estimate of the same
@@ -7,8 +7,10 @@ step (clipped to that range: the ball contains ``mu0``), is non-increasing in ``
 tends to the plain estimate as ``rho -> 0+``; saturated balls give the least value exactly.
 On exact distributions every dual lies in ``[min V, E V]``.
 
-The regression tests reproduce the issue's measurements; each failed on the code before the
-fix (old values in the comments).
+Besides the properties on random ridge operators, fixed cases pin down the failures a wrong
+dual shows: DRVI-L's objective at the clip ``H r_max`` as ``b -> 0``, a jump at ``rho = 0``,
+huge radii or ``r_max`` that lose the floor, a TV ball above the plain estimate as
+``rho -> 0+``.
 """
 
 import numpy as np
@@ -30,7 +32,7 @@ from r2pvi.envs import FiniteLinearMDP, SimulatedLinearMDP
 # ------------------------------------------------------------------------------ helpers
 
 
-def issue_mdp(seed=0, H=3):
+def fail_state_mdp(seed=0, H=3):
     """A genuine linear MDP: 4 factors over 6 states; state 5 is an absorbing fail state
     (V = 0) reached through factor 3; factor 0 puts no mass on it."""
     rng = np.random.default_rng(seed)
@@ -72,14 +74,16 @@ def value_cap(E, v, ctx):
     return np.clip(E(v), 0.0, (ctx.horizon - ctx.h - 1) * ctx.r_max)
 
 
-# ------------------------------------------------------ DRVI-L: the b -> 0 artefact (item 1)
+# ------------------------------------------------------ DRVI-L: the b -> 0 artefact
 
 
 @pytest.mark.parametrize("seed", [0, 4])
-def test_drvil_on_the_issue_mdp_stays_below_the_plain_estimate_and_near_the_exact_ball(seed):
-    """Old code: w = 3.09 (the clip H r_max) on a step whose values are <= 0.07 and whose
-    plain estimate is 0.12, in 37 of 80 steps over 40 datasets; |w - exact| up to 2.99."""
-    env = issue_mdp()
+def test_drvil_on_a_fail_state_mdp_stays_below_the_plain_estimate_and_near_the_exact_ball(
+        seed):
+    """Every learned factor value is finite, in ``[0, clipped plain estimate]`` and within
+    0.03 of the exact KL-ball value of the learned ``V_{h+1}`` under the true factors (the
+    artefact at ``b -> 0`` puts it at the clip ``H r_max = 3`` where the values are <= 0.07)."""
+    env = fail_state_mdp()
     ds = env.collect(2000, seed=seed)
     H, rho = env.horizon, 0.3
     model, calls = spy_fit(ds, KLBallRule(np.full((H, 4), rho)))
@@ -105,23 +109,23 @@ def shrinkage_mdp():
 
 def test_drvil_default_form_has_no_ridge_shrinkage_bias():
     """Ma et al.'s centering (form="ma") leaves the shrinkage's weight 1 - s_i at V = 0: with
-    gamma = 1 the step-1 weights fell 0.012-0.024 below the exact KL-ball values (below
+    gamma = 1 the step-1 weights fall 0.012-0.024 below the exact KL-ball values (below
     min V_2 = 0.727), whatever K. The default (row-normalized) form is within 1e-3."""
     env, rho = shrinkage_mdp(), 0.3
     v2 = (env.phi @ env.theta[2]).max(axis=1)
     exact = kl_constrained(FactorExpectation(env.mu[1]), v2, rho)
     ds = env.collect(5000, seed=0)
     kw = {"beta": 0.0, "reward_weights": env.theta}
-    new = DRVIL(rho, **kw).fit(ds).weights_[1] - env.theta[1]
-    old = DRVIL(rho, form="ma", **kw).fit(ds).weights_[1] - env.theta[1]
-    np.testing.assert_allclose(new, exact, atol=1e-3)
-    assert np.all(new >= v2.min() - 1e-3)
-    assert np.max(np.abs(old - exact)) > 0.01  # the bias the default form removes
+    normalized = DRVIL(rho, **kw).fit(ds).weights_[1] - env.theta[1]
+    ma = DRVIL(rho, form="ma", **kw).fit(ds).weights_[1] - env.theta[1]
+    np.testing.assert_allclose(normalized, exact, atol=1e-3)
+    assert np.all(normalized >= v2.min() - 1e-3)
+    assert np.max(np.abs(ma - exact)) > 0.01  # the bias the default form removes
 
 
 def test_drvil_is_continuous_at_rho_zero():
-    """Old code: DRVIL(1e-12) jumped by 1.7-2.9 above DRVIL(0) (the artefact at b -> 0)."""
-    for env, K in ((issue_mdp(), 2000), (SimulatedLinearMDP(), 100)):
+    """DRVIL(1e-12) is within 1e-5 of DRVIL(0): no jump from the artefact at ``b -> 0``."""
+    for env, K in ((fail_state_mdp(), 2000), (SimulatedLinearMDP(), 100)):
         ds = env.collect(K, seed=0)
         base = DRVIL(0.0, beta=0.0).fit(ds)
         near = DRVIL(1e-12, beta=0.0).fit(ds)
@@ -129,7 +133,7 @@ def test_drvil_is_continuous_at_rho_zero():
 
 
 def test_drvil_on_the_simulated_mdp_never_exceeds_pevi():
-    """Old code: DRVIL(0.1) gave 3.0 (> PEVI's 1.31) for factor 1 at step 0 (K = 100)."""
+    """DRVIL(0.1) never exceeds PEVI's weights (beta = 0, K = 100), whatever ``b_min``."""
     ds = SimulatedLinearMDP().collect(100, seed=0)
     pevi = PEVI(beta=0.0).fit(ds)
     for b_min in ("auto", None, 0.05):
@@ -141,9 +145,9 @@ def test_drvil_on_the_simulated_mdp_never_exceeds_pevi():
 def test_drvil_default_b_min_keeps_factors_without_mass_at_the_minimum_robust(seed):
     """Without b_min (None) the ridge estimate of E[e^{-V/b}] crosses its floor as b -> 0 for
     factors with no mass on the V = 0 state, and the objective there is the plain estimate:
-    at rho = 1 and 2 such factors kept their plain estimate (not robust at all). The default
+    at rho = 1 and 2 such factors keep their plain estimate (not robust at all). The default
     b_min="auto" stops the search before the crossing."""
-    env = issue_mdp()
+    env = fail_state_mdp()
     ds = env.collect(2000, seed=seed)
     H = env.horizon
     _, calls = spy_fit(ds, KLBallRule(np.full((H, 4), 0.3)))
@@ -164,13 +168,13 @@ def test_b_min_default_and_validation():
             DRVIL(0.1, b_min=bad).fit(ds)
 
 
-# ------------------------------------------------------ huge radii and bounds (item 5)
+# ------------------------------------------------------ huge radii and bounds
 
 
 def test_huge_radii_and_bounds_on_the_simulated_mdp():
-    """Old code: DRPVI(1e16) gave w = 0 where the saturated value is min V > 0 (0.67 at
-    rho = 10); DRVIL(1e10) -30, DRVIL(0.1, r_max=1e10) -3.0, r_max=1e308 raised
-    "cannot convert float NaN to integer"."""
+    """Saturated balls give the least value exactly: TV balls ``min V`` (0.67 here, or the
+    factor's cap if lower) for rho from 10 to 1e16, KL balls at rho = 1e10 the least value 0;
+    r_max = 1e10 and 1e308 give finite weights, those of r_max = 1."""
     ds = SimulatedLinearMDP().collect(100, seed=0)
     H = 3
     for rho in (10.0, 1e13, 1e16):
@@ -190,7 +194,9 @@ def test_huge_radii_and_bounds_on_the_simulated_mdp():
 
 
 def test_tv_ball_huge_radius_keeps_the_floor_exactly():
-    """rho alpha no longer cancels against rho V_min (old: 0 at rho = 1e16, exact 0.67)."""
+    """For radii up to 1e300 the TV ball's value is exactly the floor ``min V = 0.67`` (``rho
+    alpha`` must not cancel against ``rho V_min``); on signed ridge weights, the smaller of
+    ``min V`` and the clipped plain estimate."""
     E = FactorExpectation(np.array([[0.5, 0.25, 0.25], [0.0, 0.5, 0.5]]))
     v = np.array([0.67, 1.5, 3.0])
     for rho in (1.0, 10.0, 1e13, 1e16, 1e300):
@@ -204,19 +210,20 @@ def test_tv_ball_huge_radius_keeps_the_floor_exactly():
         np.testing.assert_array_equal(got, np.minimum(v.min(), np.clip(E(v), 0.0, 3.0)))
 
 
-# --------------------------------------------------------- DRPVI at rho -> 0+ (item 6)
+# --------------------------------------------------------- DRPVI at rho -> 0+
 
 
 def test_drpvi_is_continuous_at_rho_zero_on_signed_ridge_weights():
-    """With signed ridge weights max_alpha E_i[V]_alpha exceeds E_i[V]; the old estimator
-    returned it at rho = 1e-15 (above the plain estimate), the plain one at rho = 0."""
+    """With signed ridge weights ``max_alpha E_i[V]_alpha`` exceeds ``E_i[V]``; for rho from
+    1e-15 to 1e-9 the TV ball stays within ``2 rho`` of the clipped plain estimate (its value
+    at rho = 0) and never above it."""
     rng = np.random.default_rng(3)
     phi = rng.dirichlet(np.full(4, 0.5), size=40)
     E = RidgeExpectation(phi, cholesky_gram(phi, 1.0))
     v = rng.uniform(0.0, 1.0, size=40)
     floor = float(v.min())
     dense = np.stack([E(np.minimum(v, a)) for a in np.sort(v)]).max(axis=0)
-    assert np.any(dense > E(v) + 1e-6)  # the case of the issue: the old value
+    assert np.any(dense > E(v) + 1e-6)  # the max over alpha exceeds the plain estimate
     for rho in (1e-15, 1e-12, 1e-9):
         got = tv_constrained(E, v, rho, floor, v_range=(0.0, 1.0))
         np.testing.assert_allclose(got, np.clip(E(v), 0.0, 1.0), atol=2 * rho + 1e-15)

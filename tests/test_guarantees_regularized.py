@@ -7,7 +7,8 @@
   as lam -> 0 and to ``E V`` as lam -> inf.
 - Ridge limits: lam -> inf gives PEVI's (projected) plain ridge estimate for every divergence;
   on non-negative ridge weights every rule is nondecreasing in lam.
-- The issue's measured failures, as regression tests.
+- Fixed cases where a wrong dual fails: signed ridge weights, values far above lam, ties
+  below the values' resolution, huge lam, a moment crossing zero, a custom divergence.
 """
 
 import numpy as np
@@ -109,12 +110,12 @@ def test_every_rule_is_finite_and_within_the_step_range_on_ridge_operators(case)
 @settings(max_examples=120)
 @given(ridge_cases)
 def test_chi2_never_exceeds_the_plain_estimate_and_kl_stays_near_the_sample(case):
-    """The exact regularized dual never exceeds E V (mu = mu0 is feasible). chi^2 on signed
-    ridge weights could (a negative estimated variance: 0.72 against a plain 0.46 in the
-    new-user review). KL factors whose estimated moment is <= 0 got the step's bound (the
-    most optimistic value there is, 1.0 where the values were <= 0.73), then the larger of
-    E_i(v) and s_i max v (above the lam -> inf limit): now every KL factor is at most its plain
-    estimate, and a factor whose moment is <= 0 gets it."""
+    """The exact regularized dual never exceeds E V (mu = mu0 is feasible), and neither do
+    the estimates on signed ridge weights: chi^2 (whose estimated variance can be negative)
+    stays at most the plain estimate, and so does every KL factor; a KL factor whose
+    estimated moment is <= 0 gets the plain estimate (not the step's bound, the most
+    optimistic value there is, nor ``max(E_i(v), s_i max v)``, above the lam -> inf
+    limit)."""
     seed, n, d, kind, scale, ties, gamma, log_lam, h = case
     E, v = ridge_problem(seed, n, d, kind, scale, ties, gamma)
     ctx = context(scale, h)
@@ -157,7 +158,7 @@ def test_lambda_to_infinity_gives_the_plain_ridge_estimate(case):
         got = rule(E, v, ctx)
         expected = plain
         if name == "chi2":  # the paper's clip of the first moment (of V - min V) stays;
-            # the cap at the plain estimate E_i(v) (2026-12-02) makes signed weights agree
+            # the cap at the plain estimate E_i(v) makes signed weights agree
             c = v.min()
             clipped = c * row_sums(E) + np.clip(E(v - c), 0.0, scale - c)
             expected = project_onto_range(np.minimum(clipped, E(v)), 0.0, scale)
@@ -323,9 +324,9 @@ def simulated_step(seed=0, h=0):
 
 
 def test_general_f_on_signed_ridge_weights_stays_near_the_values():
-    # Issue 9: Hellinger at lam = 0.3 gave ~1.6e8, cressie_read(0.5) 4.9e8 and KL as an
-    # FDivergence 1.9e33 at lam = 1e-3 (values <= 3): the interval reached the edge of the
-    # conjugate's domain, where a negative weight times f* -> inf is unbounded.
+    # Values <= 3, estimates within 1.5 max V: an interval for alpha that reached the edge of
+    # the conjugate's domain (a negative weight times f* -> inf is unbounded) would give up
+    # to 1e33 here.
     E, v, _, _ = simulated_step()
     assert (E.matrix < 0).any()
     for div, lam in ((HELLINGER, 0.3), (cressie_read(0.5), 0.3), (KL, 1e-3), (HELLINGER, 1e-3)):
@@ -333,7 +334,7 @@ def test_general_f_on_signed_ridge_weights_stays_near_the_values():
         assert np.all(np.abs(w) <= 1.5 * v.max()), (div.name, w)
 
 
-# ------------------------------------------------------------------ issue 9 measurements
+# ------------------------------------------------------------------ fixed cases
 
 
 def test_kl_with_zero_rewards_gives_zero_weights():
@@ -347,8 +348,8 @@ def test_kl_with_zero_rewards_gives_zero_weights():
 
 
 def test_kl_tends_to_pevi_as_lambda_grows():
-    # Issue 9: with beta = 0 the literal form's mean V0 was 2.56, 1.49, 1.62, 3.0 (the clip) at
-    # lam = 0.01, 0.1, 1, 100 against PEVI's 1.40; the normalized form tends to PEVI.
+    # beta = 0: the normalized form tends to PEVI as lam grows; the literal form (kl_form=
+    # "paper") keeps a bias -lam log s_i that grows with lam.
     env = SimulatedLinearMDP(delta=0.3, xi_norm=0.3)
     ds = env.collect(100, seed=2)
     pevi = PEVI(beta=0.0, gamma=0.1, penalty="l1").fit(ds)
@@ -361,7 +362,7 @@ def test_kl_tends_to_pevi_as_lambda_grows():
 
 def test_kl_estimate_does_not_hit_the_floor_on_overlapping_features():
     # Overlapping RBF-like features (signed Lambda^-1): the step bound (H - h - 1) r_max caps
-    # the estimate, and with lam large the weights are the non-robust ones (issue: ~890 away).
+    # the estimate, and with lam large the weights are the non-robust ones.
     rng = np.random.default_rng(3)
     centers = np.linspace(0, 1, 6)
     x = rng.uniform(0, 1, 400)
@@ -383,7 +384,7 @@ def test_chi2_constant_values_return_the_constant_exactly():
 
 
 def test_chi2_constant_values_on_ridge_and_clipped_moments_are_exact():
-    # The centered moments: no E[V^2] - E[V]^2 cancellation (it was ~1e19 here).
+    # The centered moments: no E[V^2] - E[V]^2 cancellation (which gives ~1e19 here).
     rng = np.random.default_rng(2)
     phi = rng.dirichlet(np.ones(3), size=50)
     E = RidgeExpectation(phi, cholesky_gram(phi, 0.1))
@@ -395,8 +396,8 @@ def test_chi2_constant_values_on_ridge_and_clipped_moments_are_exact():
 
 
 def test_chi2_large_values_and_small_lambda_match_the_exact_primal():
-    # Values up to 1e6 and lam = 1e-3: the piecewise solver's rounding (~eps V^2 / lam) gave
-    # twice the true excess over the minimum; the exact dual's proven interval holds it.
+    # Values up to 1e6 and lam = 1e-3: a rounding of ~eps V^2 / lam would double the true
+    # excess over the minimum; the exact dual's proven interval holds it.
     # Truth: with gaps >> lam the primal's optimum is the point mass on the support's
     # minimum m (KKT), at cost lam chi^2 = lam (1/p - 1); the scaled QP agrees.
     from primal import chi2_primal
@@ -419,7 +420,8 @@ def test_chi2_large_values_and_small_lambda_match_the_exact_primal():
 @pytest.mark.parametrize("seed", [12, 54, 70])
 def test_chi2_below_the_values_resolution_stays_in_the_proven_interval(seed):
     # The exact dual lies in [m, m + lam (1/p - 1)] (m: the support's minimum, p: its mass).
-    # With ties and lam far below the values' resolution the solver's rounding gave 1e172.
+    # With ties and lam far below the values' resolution, a rounding of ~eps V^2 / lam would
+    # leave the interval (by up to 1e172).
     rng = np.random.default_rng(seed)
     S = rng.integers(2, 9)
     mu = rng.dirichlet(np.full(S, rng.choice([0.05, 0.7])), size=2)
@@ -473,8 +475,8 @@ def test_direct_kl_formula_log_domain_agrees():
     for lam in (0.05, 0.5, 5.0):
         log_u, sign = logsumexp(-(v - v.min()) / lam, b=E.matrix, axis=1, return_sign=True)
         direct = s * (v.min() - lam * (np.where(sign > 0, log_u, -np.inf) - np.log(s)))
-        # capped at the plain estimate (a moment <= 0: lam = 0.05 here, factor 2, got
-        # max(E(v), s max v) = 2.96 before, above its plain 1.78)
+        # capped at the plain estimate (a moment <= 0: lam = 0.05 here, factor 2, where
+        # max(E(v), s max v) = 2.96 is above its plain 1.78)
         direct = np.minimum(np.minimum(direct, E(v)), v.max())
         np.testing.assert_allclose(kl_regularized(E, v, lam), direct, rtol=1e-12, atol=1e-12)
 
@@ -489,10 +491,9 @@ def test_kl_form_is_validated(bad):
 @pytest.mark.parametrize("scale", [1e-6, 1.0])
 @pytest.mark.parametrize("lam", [1e4, 1e8, 1e12])
 def test_general_f_equals_the_closed_forms_at_huge_lambda(scale, lam):
-    """Algorithm 1 as ``s alpha - lam E[f*]`` cancelled two terms of size lam: KL as an
-    FDivergence was 3.4e-7 above E V at lam = 1e4 on values ~1e-6 and -100% at 1e12,
-    cressie_read(2) +33% (adversarial review). Computed around f'(1) it equals the closed
-    forms to the values' rounding and never exceeds E V."""
+    """Algorithm 1 computed around f'(1) equals the closed forms to the values' rounding and
+    never exceeds E V, at lam up to 1e12 on values ~1e-6 (as ``s alpha - lam E[f*]`` it would
+    cancel two terms of size lam: KL 3.4e-7 above E V at lam = 1e4, -100% at 1e12)."""
     mu = np.array([[0.2, 0.5, 0.3], [0.6, 0.1, 0.3]])
     v = np.array([1.0, 2.0, 3.0]) * scale
     E = FactorExpectation(mu)
@@ -506,11 +507,11 @@ def test_general_f_equals_the_closed_forms_at_huge_lambda(scale, lam):
 
 
 def test_general_f_is_insensitive_to_an_ulp_in_the_row_sums():
-    """The bound on alpha used a right secant with step 1e-7, which turned a 1-ulp change of
-    the row sums (stored column sums against recomputed ones) into 1e-9 of the result: fits of
-    the same data from memory and from a file differed by 3e-9 (Hellinger). The built-ins now
-    give f'_+ exactly."""
-    rng = np.random.default_rng(3)  # the old code: 4.1e-9 (Hellinger)
+    """A 1-ulp change of the row sums (stored column sums against recomputed ones: the same
+    data from memory and from a file) changes the result by at most 1e-13: the built-ins
+    give f'_+ exactly (a right secant with step 1e-7 for the bound on alpha would turn it
+    into ~4e-9 here, Hellinger)."""
+    rng = np.random.default_rng(3)
     phi = rng.dirichlet(np.full(8, 0.5), size=300)
     v = rng.uniform(0.0, 2.0, 300)
 
@@ -526,9 +527,9 @@ def test_general_f_is_insensitive_to_an_ulp_in_the_row_sums():
 
 
 def test_kl_is_continuous_as_the_estimated_moment_crosses_zero():
-    """Final review: with the plain estimate only where the moment is <= 0, a tiny positive
-    moment still gave the bound: lam 1.4426 -> 0.571 (plain), 1.4427 -> 2.0 (the bound). With
-    the floor of the normalized moment the value is continuous and at most s max v."""
+    """As lam moves the estimated moment across zero (near lam = 1.4426 here), the value is
+    continuous and at most ``max(E(v), s max v)``: the floor of the normalized moment (a
+    plain estimate only where the moment is <= 0 would jump from 0.571 to the bound 2.0)."""
     phi = np.array([[1.0], [-0.5]])
     E = RidgeExpectation(phi, cholesky_gram(phi, 0.5))
     v = np.array([1.0, 0.0])
@@ -540,8 +541,8 @@ def test_kl_is_continuous_as_the_estimated_moment_crosses_zero():
 
 def test_a_custom_divergence_must_declare_its_slope_at_one():
     """The general dual is evaluated around the tangent at s0 = f'(1) (f*(s0) = s0): KL written
-    by hand with the default slope_at_one (0, 0) gave 0.467 where the dual is 0.283 (above it
-    at lam = 2 before: wrong either way). Now refused, naming the fix."""
+    by hand with the default slope_at_one (0, 0) would give 0.467 where the dual is 0.283, so
+    it is refused, naming the fix; with the right slope it equals the closed form."""
     from scipy.special import xlogy
 
     from r2pvi import FDivergence
@@ -563,8 +564,8 @@ def test_a_custom_divergence_must_declare_its_slope_at_one():
 
 
 def test_general_f_never_exceeds_the_plain_estimate_on_signed_weights():
-    """Final review: on signed ridge weights the sup over alpha of the estimated objective
-    passed E_i V (Hellinger by up to 0.65, TV as an FDivergence 0.46); now capped there."""
+    """On signed ridge weights the sup over alpha of the estimated objective can pass E_i V
+    (Hellinger by up to 0.65, TV as an FDivergence 0.46): the value is capped there."""
     worst = -np.inf
     for seed in range(12):
         rng = np.random.default_rng(seed)

@@ -62,11 +62,10 @@ scales = st.sampled_from([1e-6, 1.0, 1e6])
        st.booleans(), scales)
 def test_signed_ridge_estimate_never_exceeds_its_large_lam_limit(seed, n, d, ties, zero_mass,
                                                                  scale):
-    """Old code: a factor whose moment was <= 0 or tiny (a negative weight at the least
-    values) was held at max(E_i v, s_i max v), above the plain estimate E_i v, which is the
-    estimate's lam -> inf limit and an upper bound of the exact dual (1.0 against a plain 0.71
-    in the issue's Dirichlet example). Now every factor is at most it, at every lam, and equals
-    it where the moment is <= 0."""
+    """Every factor is at most its plain estimate E_i v (the estimate's lam -> inf limit and
+    an upper bound of the exact dual), at every lam, and equals it where the moment is <= 0
+    (a negative weight at the least values), rather than being held at max(E_i v, s_i max v)
+    above it (1.0 against a plain 0.71 on Dirichlet features)."""
     E, v = signed_ridge(seed, n, d, ties, zero_mass, scale)
     plain = np.clip(E(v), 0.0, scale)
     ws = kl_over_lams(E, v, scale)
@@ -106,15 +105,15 @@ def dirichlet_mdp(seed, S=8, A=3, d=4, H=4):
     return FiniteLinearMDP(phi, rng.uniform(0, 1, size=(H, d)), mu, initial=0)
 
 
-@pytest.mark.parametrize("seed, old_drop", [(20, 0.065), (21, 0.038), (15, 0.031)])
-def test_mean_weight_drop_over_lam_on_dirichlet_features(seed, old_drop):
-    """The issue's measurement (K = 40 trajectories of a Dirichlet-feature linear MDP): the
-    mean fitted weight fell by up to 0.065 as lam grew (0.84, 0.85, 0.789, ... in the issue),
-    from factors held above their plain estimate at small lam. Now at most 0.015. (It cannot
-    be 0 in general: the ridge estimate of every step is not monotone in the next values, so
-    even a per-step monotone estimate would not make the fit monotone on signed weights.)"""
+@pytest.mark.parametrize("seed, drop_if_held", [(20, 0.065), (21, 0.038), (15, 0.031)])
+def test_mean_weight_drop_over_lam_on_dirichlet_features(seed, drop_if_held):
+    """On K = 40 trajectories of a Dirichlet-feature linear MDP the mean fitted weight drops
+    by at most 0.015 as lam grows (``drop_if_held``: the drop, up to 0.065, when factors are
+    held above their plain estimate at small lam). (It cannot be 0 in general: the ridge
+    estimate of every step is not monotone in the next values, so even a per-step monotone
+    estimate would not make the fit monotone on signed weights.)"""
     ds = dirichlet_mdp(seed).collect(40, seed=seed)
     lams = np.geomspace(1e-3, 1e2, 26)
     means = np.array([R2PVI("kl", lam=lam, beta=0.0).fit(ds).weights_.mean() for lam in lams])
     drop = float(np.max(np.maximum.accumulate(means) - means))
-    assert drop < 0.015 < old_drop
+    assert drop < 0.015 < drop_if_held

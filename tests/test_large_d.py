@@ -1,5 +1,6 @@
-"""Issue 14: large feature spaces — the dual (Woodbury) form, sparse rows, pooled steps and
-cached acting, each against an independent dense computation."""
+"""Large feature spaces: the dual (Woodbury) form, sparse rows, pooled steps and cached
+acting, each against an independent dense computation. (That pooled steps are views of the
+arrays in memory is tested with the storage internals, in test_storage_internals_chunks.py.)"""
 
 import numpy as np
 import pytest
@@ -414,29 +415,6 @@ def test_pooled_equals_per_step_when_every_step_sees_the_same_transitions(name):
                                    atol=1e-10)
 
 
-def test_pooled_views_and_stacked_copies_agree(tmp_path):
-    """In memory the pooled rows are views of the step-major arrays (no copy); read from a
-    dataset directory, or held as sparse rows, they are stacked step by step: the same fit."""
-    rng = np.random.default_rng(13)
-    phi, rewards, next_phi = _data(rng, 20, 4, 6)
-    next_values = np.full(next_phi.shape[:-1], np.nan)
-    next_values[:5, 1] = 0.5  # known values travel with their rows
-    ds = OfflineDataset.from_features(phi, rewards, next_phi, next_values)
-    views = ds._source.pooled_views(3)
-    assert views is not None and np.shares_memory(views[0], ds._source.phi.array)
-    stacked = ds.save(tmp_path / "ds")
-    opened = OfflineDataset.open(stacked)
-    assert opened._source.pooled_views(3) is None
-    sparse = SparseOfflineDataset.from_rows(
-        [sp.csr_matrix(phi[:, h]) for h in range(4)], rewards,
-        [sp.csr_matrix(next_phi[:, h].reshape(-1, 6)) for h in range(4)], 2, next_values)
-    for make in (lambda: R2PVI("tv", 0.3, beta=0.1), lambda: DRPVI(0.2, beta=0.1)):
-        want = _fit(make, ds, time_homogeneous=True).weights_
-        for other in (opened, sparse):
-            np.testing.assert_allclose(_fit(make, other, time_homogeneous=True).weights_,
-                                       want, atol=1e-10)
-
-
 def test_pooled_factors_one_gram_matrix(monkeypatch):
     rng = np.random.default_rng(13)
     ds = OfflineDataset.from_features(*_data(rng, 20, 5, 8))
@@ -587,10 +565,9 @@ def test_sparse_feature_maps_give_sparse_episode_datasets():
 
 @pytest.mark.parametrize("name", ["pevi", "tv", "drvil"])
 def test_pooled_fits_ignore_the_last_steps_next_states(name, tmp_path):
-    """Row H-1 of the next-state data "is ignored and may hold anything" (from_features): a
-    pooled fit used it (NaN weights in memory, DRVI-L crashed, files' zeros gave other
-    numbers). Now memory with NaN there, memory with other values and the saved dataset
-    (which stores zeros) give the same fit."""
+    """Row H-1 of the next-state data "is ignored and may hold anything" (from_features), so
+    pooled fits must not use it: memory with NaN there, memory with other values and the
+    saved dataset (which stores zeros) give the same, finite fit."""
     rng = np.random.default_rng(21)
     K, H, d = 12, 3, 4
     phi, rewards, next_phi = _data(rng, K, H, d)

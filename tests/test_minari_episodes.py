@@ -54,7 +54,7 @@ def test_third_party_minari_dataset(minari):
     md = minari.create_dataset_from_buffers("cartpole/random-v0", buffers, env=env,
                                             algorithm_name="random")
     with pytest.raises(ValueError, match="feature_map"):
-        from_minari(md)  # used to crash: 'CartPoleEnv' object has no attribute 'model'
+        from_minari(md)  # a named error, not an AttributeError on the environment
     fmap = cross_actions(NormalizedRBF(n_centers=2).fit(episode_observations(md)), 2)
     direct = OfflineDataset.from_episodes(md, fmap, 2)
     loaded = from_minari("cartpole/random-v0", feature_map=fmap)  # local id, no download

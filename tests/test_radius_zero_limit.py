@@ -43,8 +43,9 @@ ESTIMATORS = {"DRPVI": DRPVI, "DRVI-L": DRVIL}
 @pytest.mark.parametrize("name", list(ESTIMATORS))
 @pytest.mark.parametrize("beta, gamma", [(0.0, 1.0), (0.3, 0.5)])
 def test_zero_radius_is_pevi_and_the_limit_of_small_radii(make, name, beta, gamma):
-    """Old code: rho = 0 returned the plain estimate unprojected (0.028 from PEVI on the
-    signed data, factor values below 0), while rho = 1e-12 gave the projection."""
+    """rho = 0 gives PEVI's weights exactly, and rho = 1e-12, 1e-9 stay within about rho (TV)
+    or sqrt(rho) (KL) of them: rho = 0 projects the plain estimate onto the value range as
+    small radii do (unprojected, it has factor values below 0 on the signed data)."""
     kw = {"beta": beta, "gamma": gamma, "penalty": "l1"}
     for seed in range(3):
         ds = make(seed=seed)

@@ -74,7 +74,7 @@ def test_a_save_failing_part_way_keeps_the_previous_file(tmp_path, data, monkeyp
 
 @pytest.mark.skipif(sys.platform == "win32", reason="RLIMIT_FSIZE is POSIX")
 def test_a_save_over_the_file_size_limit_keeps_the_previous_file(tmp_path):
-    # The issue's reproduction: `ulimit -f 8` (8 KiB) while saving over a good file.
+    # `ulimit -f 8` (8 KiB) while saving over a good file.
     path = tmp_path / "ds.npz"
     small = make_data(K=2)
     small.save(path)
@@ -142,7 +142,7 @@ def _bad_model_files(tmp_path, good):
     rw("invdiag.npz", "'gram_inv_diag_' must be > 0",
        gram_inv_diag_=-load(good).gram_inv_diag_)
     rw("shape.npz", "'reward_weights_' must have shape", reward_weights_=np.ones((2, 2)))
-    # A version-1 file must carry its (H, d, d) Cholesky factors (issue 14's version 2 does not).
+    # A version-1 file must carry its (H, d, d) Cholesky factors (version 2 does not).
     rw("v1.npz", "'gram_cholesky_' is missing", header=lambda m: m.update(format_version=1))
     rw("lam.npz", "'params' fail the estimator's checks: lam must be > 0",
        header=lambda m: m["params"].update(lam=-0.5))

@@ -1,6 +1,10 @@
-"""A dataset save with ``overwrite=True`` replaces an r2pvi dataset and nothing else: a user's
-directory or file at the path survives byte for byte, a failed save keeps the old dataset,
-and what a killed save left behind is cleaned on the next open or write of the path."""
+"""A save never destroys what r2pvi did not write.
+
+Without ``overwrite`` a save refuses an existing path. With ``overwrite=True`` a dataset save
+replaces an r2pvi dataset and nothing else: a user's directory or file at the path survives
+byte for byte, a failed save keeps the old dataset, and what a killed save left behind is
+cleaned on the next open or write of the path. An estimator's save never writes over a
+dataset file or directory, nor over a file r2pvi did not write; a model replaces a model."""
 
 from __future__ import annotations
 
@@ -18,8 +22,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import r2pvi
-from r2pvi import DatasetWriter, OfflineDataset
-from r2pvi.data.storage import format as _format
+from r2pvi import PEVI, DatasetWriter, OfflineDataset
 from r2pvi.sparse import SparseOfflineDataset
 
 K, H, A, D = 12, 3, 2, 4
@@ -141,7 +144,7 @@ def test_a_save_that_fails_at_the_swap_keeps_the_old_dataset(tmp_path, monkeypat
             raise OSError(28, "No space left on device")
         return real(src, dst)
 
-    monkeypatch.setattr(_format.os, "replace", failing)
+    monkeypatch.setattr(os, "replace", failing)  # the rename r2pvi's saves make
     with pytest.raises(OSError, match="No space left"):
         new.save(target, overwrite=True)
     monkeypatch.undo()
@@ -164,6 +167,53 @@ def test_sparse_dataset_save_takes_the_save_keywords_and_touches_nothing(tmp_pat
     with pytest.raises(TypeError, match="cannot save a dataset of sparse rows"):
         ds.save(tmp_path / "new", dtype="float32", next_form="full")
     assert _snapshot(target) == before and not (tmp_path / "new").exists()
+
+
+# ---------------------------------------------------------------- without overwrite, models
+def test_dataset_npz_save_refuses_an_existing_file_unless_overwrite(tmp_path):
+    data = _data()
+    other = _data(seed=1)
+    path = data.save(tmp_path / "x.npz")
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        other.save(path)
+    assert path.read_bytes() == before
+    other.save(path, overwrite=True)
+    assert np.array_equal(OfflineDataset.load(path).phi, other.phi)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.npz"]  # no temporary left
+
+
+def test_estimator_save_never_writes_over_a_dataset_or_a_directory(tmp_path):
+    data = _data()
+    est = PEVI().fit(data)
+    folder = data.save(tmp_path / "mem_dir")
+    with pytest.raises(IsADirectoryError, match="dataset directory.*mem_dir.npz"):
+        est.save(folder)
+    assert not (tmp_path / "mem_dir.npz").exists()
+    kept = data.save(tmp_path / "data.npz")
+    before = kept.read_bytes()
+    with pytest.raises(FileExistsError, match="holds a dataset"):
+        est.save(kept)
+    assert kept.read_bytes() == before
+    foreign = tmp_path / "mine.npz"
+    np.savez(foreign, a=np.ones(3))
+    with pytest.raises(FileExistsError, match="r2pvi did not write"):
+        est.save(foreign)
+    (tmp_path / "empty.npz").touch()  # an empty file (tempfile's) holds nothing to lose
+    assert r2pvi.load(est.save(tmp_path / "empty.npz")).n_actions_ == A
+    model = est.save(tmp_path / "model.npz")
+    PEVI(beta=0.5).fit(data).save(model)  # a model replaces a model
+    assert r2pvi.load(model).beta == 0.5
+
+
+def test_directory_save_over_a_dataset_file_leaves_nothing_behind(tmp_path):
+    data = _data()
+    path = tmp_path / "d"
+    data.save(path.with_suffix(".npz")).rename(path)  # a dataset file without a suffix
+    with pytest.raises(FileExistsError):
+        data.save(path)
+    data.save(path, overwrite=True)
+    assert path.is_dir() and sorted(p.name for p in tmp_path.iterdir()) == ["d"]
 
 
 _NAMES = st.text("abcxyz_.-0123456789", min_size=1, max_size=8).filter(
@@ -259,13 +309,12 @@ def test_an_overwrite_killed_mid_swap_gives_the_old_dataset_back_on_open(tmp_pat
     proc = _run_child(f"""
         import os, signal, numpy as np
         from r2pvi import OfflineDataset
-        from r2pvi.data.storage import format as _format
         real = os.replace
         def replace(src, dst):
             if ".tmp-" in str(src):  # the old dataset moved aside: die before the new one lands
                 os.kill(os.getpid(), signal.SIGKILL)
             return real(src, dst)
-        _format.os.replace = replace
+        os.replace = replace
         rng = np.random.default_rng(5)
         ds = OfflineDataset.from_features(rng.random(({K}, {H}, {D})), rng.random(({K}, {H})),
                                           rng.random(({K}, {H}, {A}, {D})), check_simplex=False)

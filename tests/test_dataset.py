@@ -1,4 +1,6 @@
-"""OfflineDataset: constructors, validation, simplex warnings, npz round trip."""
+"""OfflineDataset in memory: constructors, validation, simplex warnings, read-only views,
+subsets, the ``.npz`` round trip. (Directories: test_dataset_directory.py; the writer:
+test_dataset_writer.py; other storage kinds: test_storage_kinds.py.)"""
 
 import warnings
 

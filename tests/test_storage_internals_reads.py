@@ -1,6 +1,12 @@
-"""The streaming read path: mapped windows, the pread fallback, and next-state values as one
-matrix-vector product per chunk. The truth is the unchunked definition (``_q_step`` on the
-whole step, ``FileField.read``) and the in-memory fit."""
+"""Internals of reading stored files chunk by chunk: mapped windows, the pread fallback, and
+next-state values as one matrix-vector product per chunk.
+
+These tests reach into the storage's file reads (``storage.files._prefetched``, ``_unmap``,
+``MAP_WINDOW``, ``FileField``) and the engine's next-state values (``engine._q_step``,
+``_max_over_actions``, ``_NextValue``), because no public API exposes how a step is read.
+The truth is the unchunked definition (``_q_step`` on the whole step, ``FileField.read``)
+and the in-memory fit; change these tests with the internals.
+"""
 
 from __future__ import annotations
 

@@ -3,7 +3,9 @@
 The truth is the full form (``next_phi.npy`` whole): the rebuilt rows must be bitwise the
 stored ones, and every fit bitwise the full form's, wherever the identity
 ``next_phi[k, h, a_{k,h+1}] = phi[k, h+1]`` breaks (episode ends, truncation, padding,
-independent transitions, known values, the last step).
+independent transitions, known values, the last step). That the rows rebuilt from the step
+source are the stored ones for any range of any step is tested with the storage internals,
+in test_storage_internals.py.
 """
 
 from __future__ import annotations
@@ -14,11 +16,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_storage import ESTIMATORS as STORAGE_ESTIMATORS
+from storage_helpers import ESTIMATORS as STORAGE_ESTIMATORS
+from storage_helpers import set_chunk
 
 import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset
-from r2pvi.data.storage import behaviour
 from r2pvi.envs import FiniteLinearMDP
 from r2pvi.storage import ArrayField, BehaviourNext, behaviour_split
 
@@ -63,11 +65,10 @@ def assert_bitwise_fit(a, b):
         assert same_bits(getattr(a, name), getattr(b, name)), name
 
 
-@pytest.fixture(scope="module")
-def forms(tmp_path_factory):
+def both_forms(root):
     """Trajectories from episodes, saved in both forms, written by the writer in both forms
-    (uneven chunks, float32), and independent transitions in both forms."""
-    root = tmp_path_factory.mktemp("behaviour")
+    (uneven chunks, float32), and independent transitions in both forms: ``{case: (full,
+    behaviour)}`` directories under ``root``."""
     ds = OfflineDataset.from_episodes(episodes(), rbf_map, n_actions=A, horizon=H)
     out = {"episodes": (ds.save(root / "full"),
                         ds.save(root / "beh", next_form="behaviour"))}
@@ -88,30 +89,9 @@ def forms(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("case", ["episodes", "writer", "transitions"])
-def test_rebuilt_next_features_are_the_stored_ones_bitwise(forms, case, monkeypatch):
-    # side positions: counts per 7 samples (patched where BehaviourNext reads it)
-    monkeypatch.setattr(behaviour, "SIDE_BLOCK", 7)
-    full, beh = (OfflineDataset.open(p) for p in forms[case])
-    assert isinstance(beh._source.next, BehaviourNext)
-    _, blocks = beh._source.next._index(0)[1]
-    assert len(blocks) == full.n_trajectories // 7 + 2  # the patch took effect
-    assert same_bits(beh.next_phi, full.next_phi)
-    assert same_bits(beh.next_values, full.next_values)
-    for h, s, e in ((0, 3, 50), (H - 1, 0, 7), (2, 100, 101)):  # any range, any step
-        assert same_bits(beh._source.next.features(h, s, e),
-                         full._source.next.features(h, s, e))
-    assert same_bits(beh.subset([7, 0, 3]).next_phi, full.subset([7, 0, 3]).next_phi)
-    mf = json.loads((forms[case][1] / "manifest.json").read_text())
-    K = full.n_trajectories
-    n_side = mf["next_behaviour"]["n_side"]
-    assert mf["next"] == "behaviour" and "next_phi" not in mf["files"]
-    if case == "transitions":  # independent next states: nothing matches, all in the table
-        assert n_side == H * K
-    else:  # the last step always, plus episode ends and padding; the rest rebuilt from phi
-        ends = (full.phi[:, 1:].sum(axis=2) == 0).sum()  # steps h with no step h+1 data
-        assert K <= n_side <= K + ends
-        assert n_side < 0.5 * H * K
+@pytest.fixture(scope="module")
+def forms(tmp_path_factory):
+    return both_forms(tmp_path_factory.mktemp("behaviour"))
 
 
 @pytest.mark.parametrize("name", list(ESTIMATORS))
@@ -119,7 +99,7 @@ def test_every_fit_is_bitwise_the_full_forms(forms, name):
     for case in ("episodes", "writer", "transitions"):
         full, beh = (OfflineDataset.open(p) for p in forms[case])
         for ds in (full, beh):
-            ds._source.chunk = 37  # many chunks per step, side rows inside chunks
+            set_chunk(ds, 37)  # many chunks per step, side rows inside chunks
         assert_bitwise_fit(ESTIMATORS[name]().fit(beh), ESTIMATORS[name]().fit(full))
 
 
