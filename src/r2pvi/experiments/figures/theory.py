@@ -1,4 +1,4 @@
-"""Theory in practice (issue 6): suboptimality rates and the instance-dependent bound.
+"""Theory in practice: suboptimality rates and the instance-dependent bound.
 
 ``rates``: exact ``SubOpt(pi_hat, s1, lam)`` of R2PVI-TV/KL/chi^2 against K on a log grid, on
 the simulated linear MDP and on the lower-bound hard instance, with the fitted log-log slope
