@@ -9,7 +9,7 @@ import pytest
 from helpers import D, linear_data
 
 import r2pvi
-from r2pvi import DRPVI, DRVIL, PEVI, OfflineDataset
+from r2pvi import DRPVI, DRVIL, PEVI, R2PVI, OfflineDataset
 from r2pvi.features import StateAggregation, cross_actions
 
 
@@ -62,3 +62,17 @@ def test_validation_messages_print_plain_numbers():
         with pytest.raises((TypeError, ValueError)) as info:
             est.fit(data)
         assert text in str(info.value) and "np." not in str(info.value), str(info.value)
+
+
+def test_an_r_max_of_zero_from_all_zero_rewards_says_why_and_what_to_pass():
+    rng = np.random.default_rng(0)
+    phi = rng.dirichlet(np.ones(3), (10, 3))
+    nphi = rng.dirichlet(np.ones(3), (10, 3, 2))
+    zero = OfflineDataset.from_features(phi, np.zeros((10, 3)), nphi)
+    assert zero.reward_range == (0.0, 0.0)
+    with pytest.raises(ValueError, match=r"every reward in the data is 0.*r_max=1\.0"):
+        R2PVI("tv", 1.0, r_max=zero.reward_range[1]).fit(zero)
+    some = OfflineDataset.from_features(phi, rng.random((10, 3)), nphi)
+    with pytest.raises(ValueError, match=r"^r_max must be > 0, got 0\.0$"):
+        R2PVI("tv", 1.0, r_max=0.0).fit(some)
+    R2PVI("tv", 1.0, r_max=1.0).fit(zero)  # the bound of the task is accepted

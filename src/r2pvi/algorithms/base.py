@@ -33,6 +33,23 @@ __all__ = ["LinearEstimator", "load_estimator", "ESTIMATOR_REGISTRY"]
 _FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
 
 
+def _check_r_max(r_max, dataset) -> float:
+    """``r_max > 0``; a zero taken from data whose rewards are all 0 is named as such."""
+    value = check_scalar(r_max, "r_max")
+    if value > 0:
+        return value
+    low, high = dataset.reward_range if value == 0 else (None, None)
+    if high == 0 and low == 0:
+        raise ValueError(
+            "r_max must be > 0, got 0.0: every reward in the data is 0 (data.reward_range = "
+            "(0.0, 0.0); e.g. -1 per step shifted by reward_offset), so r_max cannot come from "
+            "the data's rewards. Pass the task's bound of the shifted rewards, at least the "
+            "offset c (the absorbing goal state pays c per remaining step): r_max=1.0 for "
+            "-1 per step shifted by reward_offset='auto'. If no episode reached the goal, the "
+            "data cannot tell policies apart: collect episodes that reach it")
+    raise ValueError(f"r_max must be > 0, got {value!r}")
+
+
 class LinearEstimator(KeywordParams, SklearnCompatMixin):
     """Base class of the pessimistic value-iteration estimators (PEVI, R2PVI, DRPVI, ...).
 
@@ -85,7 +102,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         p: dict = {
             "beta": check_scalar(self.beta, "beta", low=0.0),
             "gamma": check_scalar(self.gamma, "gamma", low=0.0, low_inclusive=False),
-            "r_max": check_scalar(self.r_max, "r_max", low=0.0, low_inclusive=False),
+            "r_max": _check_r_max(self.r_max, dataset),
             "penalty": check_choice(
                 getattr(self, "penalty", "elliptical"), "penalty", self._penalty_choices
             ),
