@@ -1,5 +1,8 @@
 """Trajectory splits (len, indexing) and held-out scores, used by scikit-learn's model selection."""
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -291,3 +294,14 @@ def test_clone_keeps_params_and_fit_accepts_y_none():
     assert twin.get_params() == est.get_params()
     ds = fail_state_mdp(0).collect(30, seed=0)
     np.testing.assert_array_equal(twin.fit(ds, None).weights_, est.fit(ds).weights_)
+
+
+def test_the_model_selection_guide_runs_as_written(capsys):
+    page = Path(__file__).resolve().parents[1] / "docs" / "user_guide" / "model-selection.md"
+    blocks = re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S)
+    assert len(blocks) == 1
+    namespace = {}
+    exec(compile(blocks[0], str(page), "exec"), namespace)  # noqa: S102
+    out = capsys.readouterr().out
+    assert "{'lam': " in out and "R2PVI(" in out
+    assert np.all(namespace["search"].cv_results_["mean_test_score"] > 0)
