@@ -157,8 +157,10 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         """The fitted model; variance-aware subclasses override this with two passes."""
         return self._run_engine(dataset, params)
 
-    def fit(self, dataset: OfflineDataset):
+    def fit(self, dataset: OfflineDataset, y=None):
         """Learn the weights of every step from ``dataset``; returns ``self``.
+
+        ``y`` is ignored (scikit-learn's signature: the rewards are in the dataset).
 
         Raises ``ValueError`` when the rewards (or those of ``reward_weights``) leave
         ``[0, r_max]``, naming the ``r_max`` to pass or the shift to apply (see
@@ -252,6 +254,50 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
 
         self._check_fitted()
         return GreedyPolicy(self, feature_map, beyond_horizon=beyond_horizon)
+
+    # ------------------------------------------------------------------ scoring
+    def score(self, dataset: OfflineDataset, y=None, *, kind: str = "bellman",
+              initial_phi=None) -> float:
+        """A score of the fitted estimator on held-out trajectories; higher is better.
+
+        Parameters
+        ----------
+        dataset : OfflineDataset
+            Held-out trajectories (``dataset[test_indices]``), with the fitted H and d.
+        y : None
+            Ignored (scikit-learn's signature).
+        kind : {"bellman", "fqe"}, default "bellman"
+            ``"bellman"``: minus the mean squared nominal Bellman residual
+            ``(Q_h(s, a) - r - V_{h+1}(s'))^2`` of the fitted ``Q`` over the held-out
+            transitions (0 is a perfect fit). ``"fqe"``: fitted-Q evaluation of the greedy
+            policy's mean initial-state value on the held-out data (rewards' units).
+        initial_phi : array_like (n, A, d) or callable, optional
+            ``"fqe"`` only (required there): features of every action at the initial
+            states, or ``initial_phi(dataset) -> (n, A, d)``.
+
+        Returns
+        -------
+        float
+
+        See Also
+        --------
+        r2pvi.algorithms.Scorer : the same as a ``scoring=`` callable for scikit-learn.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import PEVI, OfflineDataset
+        >>> rng = np.random.default_rng(0)
+        >>> ds = OfflineDataset.from_features(rng.dirichlet(np.ones(3), (40, 2)),
+        ...                                   rng.random((40, 2)),
+        ...                                   rng.dirichlet(np.ones(3), (40, 2, 2)))
+        >>> est = PEVI(beta=0.0).fit(ds[:30])
+        >>> bool(est.score(ds[30:]) <= 0.0)
+        True
+        """
+        from ._score import score_estimator
+
+        return score_estimator(self, dataset, kind, initial_phi=initial_phi)
 
     # ------------------------------------------------------------------ I/O
     def _params_to_json(self) -> tuple[dict, dict]:

@@ -251,7 +251,11 @@ class OfflineDataset:
 
     def subset(self, indices) -> OfflineDataset:
         """The dataset restricted to the trajectories ``indices`` (for bootstraps, splits);
-        in memory, whatever the storage."""
+        in memory, whatever the storage.
+
+        ``indices`` is an array of integer indices in ``[0, K)`` (repeats allowed, as in a
+        bootstrap) or a boolean mask of length K. ``dataset[indices]`` is the same, with
+        slices and negative indices too."""
         idx = np.asarray(indices)
         if idx.dtype == bool:
             if idx.shape != (self.n_trajectories,):
@@ -264,6 +268,69 @@ class OfflineDataset:
             raise ValueError("indices must select at least one trajectory")
         idx = as_index_array(idx, "indices", self.n_trajectories, ndim=1)
         return OfflineDataset(_source=self._source.take(idx))
+
+    # ------------------------------------------------------------------ trajectories
+    def __len__(self) -> int:
+        """K, the number of trajectories: the dataset is a sequence of trajectories (what
+        scikit-learn's splitters count)."""
+        return self.n_trajectories
+
+    @property
+    def shape(self) -> tuple[int]:
+        """``(K,)``: the dataset seen as a sequence of K trajectories. scikit-learn reads it
+        to count samples and to index by rows (``dataset[indices, ...]``), so ``KFold``,
+        ``cross_val_score`` and ``GridSearchCV`` split by trajectory without glue."""
+        return (self.n_trajectories,)
+
+    def __getitem__(self, key) -> OfflineDataset:
+        """The trajectories selected by ``key``, as a dataset (see :meth:`subset`).
+
+        ``key`` is an array of integer indices (negative ones count from the end), a slice,
+        or a boolean mask with one entry per trajectory; ``key, ...`` (what scikit-learn
+        passes) is the same. A single integer is refused: ``dataset[[k]]`` is trajectory
+        ``k`` as a dataset.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> rng = np.random.default_rng(0)
+        >>> ds = OfflineDataset.from_features(rng.dirichlet(np.ones(3), (6, 2)),
+        ...                                   rng.random((6, 2)),
+        ...                                   rng.dirichlet(np.ones(3), (6, 2, 2)))
+        >>> len(ds), len(ds[1:4]), len(ds[np.array([0, -1])]), len(ds[ds.rewards[:, 0] > 0.5])
+        (6, 3, 2, 3)
+        """
+        if isinstance(key, tuple):
+            if len(key) == 2 and key[1] is Ellipsis:
+                key = key[0]
+            else:
+                raise TypeError(
+                    "an OfflineDataset is indexed by trajectories only: dataset[indices], not "
+                    f"a tuple of {len(key)} keys; use dataset.step(h) for one step")
+        K = self.n_trajectories
+        if isinstance(key, slice):
+            idx = np.arange(K)[key]
+            if idx.size == 0:
+                raise ValueError(f"the slice {key} selects no trajectory (K = {K})")
+            return self.subset(idx)
+        if isinstance(key, int | np.integer) and not isinstance(key, bool | np.bool_):
+            raise TypeError(
+                f"an OfflineDataset is indexed by arrays of trajectories; for trajectory {key} "
+                f"as a dataset, pass dataset[[{key}]]")
+        idx = np.asarray(key)
+        if idx.dtype != bool and idx.dtype.kind in "iu" and idx.ndim == 1 and idx.size:
+            if idx.min() < -K or idx.max() >= K:
+                raise ValueError(
+                    f"trajectory indices must lie in [-{K}, {K}) (K = {K}), got values from "
+                    f"{int(idx.min())} to {int(idx.max())}")
+            idx = np.where(idx < 0, idx + K, idx)
+        return self.subset(idx)
+
+    def __iter__(self):
+        raise TypeError(
+            "an OfflineDataset is not iterated trajectory by trajectory; select trajectories "
+            "with dataset[indices] or read a step with dataset.step(h)")
 
     def __repr__(self) -> str:
         return (
