@@ -10,7 +10,8 @@ from ._finite import Origin, array_origin
 
 # Trajectories per chunk when streaming a step: about 1 MB (taken actions) and 2 MB (next
 # states, A = 2) of float64 per chunk for d = 30, about one core's L2; fewer rows pay more
-# per-chunk Python and call overhead, more gain nothing (measured: docs/storage.md).
+# per-chunk Python and call overhead, more gain nothing (measured: docs/architecture.md,
+# "Storage internals").
 CHUNK = 1 << 12
 
 

@@ -112,7 +112,7 @@ def _prefetched(field: FileField, h, n, chunk, shape):
     Why: for float32 files, mapping and unmapping the pages costs more than ``pread``'s copy
     into a cached buffer; for float64 files the views save the copy. The measurements
     (``benchmarks/bench_storage.py disk``) and the alternatives that did not pay are in
-    docs/storage.md, "Read path by storage type".
+    docs/architecture.md, "Storage internals".
 
     A view that escapes (a caller that keeps a chunk against the contract) never dangles:
     NumPy's view holds a buffer export of the ``mmap``, so ``mmap.close`` raises
