@@ -153,3 +153,20 @@ def test_a_per_step_cartpole_fit_starves_and_the_pooled_one_does_not():
     with warnings.catch_warnings():
         warnings.simplefilter("error", StarvedFitWarning)
         R2PVI("tv", lam=0.1, beta=0.01, time_homogeneous=True).fit(ds)
+
+
+@pytest.mark.parametrize("K", [12, 80])
+def test_empty_rows_after_an_episode_ends_are_no_transitions(K):
+    H, d = 4, 20
+    rng = np.random.default_rng(K)
+    phi = rng.dirichlet(np.ones(d), size=(K, H))
+    alive = K // 3
+    phi[alive:, 2:] = 0.0  # episodes that ended after step 1: empty rows
+    next_phi = rng.dirichlet(np.ones(d), size=(K, H, 2))
+    ds = OfflineDataset.from_features(phi, np.zeros((K, H)), next_phi, check_simplex=False)
+    report = PEVI().fit(ds).fit_report_
+    assert report.rows.tolist() == [K, K, alive, alive]
+    expected = [float(np.mean(phi[:n, h] @ np.linalg.solve(
+        phi[:, h].T @ phi[:, h] + np.eye(d), phi[:, h].T @ np.ones(K))))
+        for h, n in enumerate(report.rows)]
+    np.testing.assert_allclose(report.constant_fit, expected, rtol=1e-10)

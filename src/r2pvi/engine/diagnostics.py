@@ -51,16 +51,18 @@ class FitDiagnostics:
         The ridge parameter.
     pooled : bool
         Whether the steps were pooled (one regression).
-    rows : (S,) int
-        Rows (transitions) in each regression.
-    feature_mass : (S,) float or None
+    rows : (S,) int or None
+        Transitions in each regression: its rows that are not empty (a step after an
+        episode's end has an empty row, which adds nothing to a regression).
+    feature_mass : (S,) float
         The median over features of ``sum_rows w phi_i^2`` (the Gram diagonal): a feature
         whose mass is small against ``gamma`` is mostly ridge.
-    starved_features : (S,) float or None
+    starved_features : (S,) float
         The fraction of features whose mass ``sum_rows w phi_i^2`` is below ``gamma``.
     constant_fit : (S,) float or None
-        The fitted value of the constant target 1, averaged over the regression's rows:
-        ``(Phi^T W 1)^T Lambda^{-1} (Phi^T W 1) / sum(W)`` (1 without shrinkage).
+        The fitted value of the constant target 1, averaged over the regression's
+        transitions: ``(Phi^T W 1)^T Lambda^{-1} (Phi^T W 1) / sum(W)``, the sum over the
+        non-empty rows (1 without shrinkage; NaN for a regression without transitions).
     absorbing : (S,) int or None
         Rows with a known next-state value (e.g. 0 after a failure) in each regression
         (a per-step fit's step ``H-1`` included, though its next values never enter the
@@ -72,19 +74,20 @@ class FitDiagnostics:
     horizon: int
     gamma: float
     pooled: bool
-    rows: np.ndarray
-    feature_mass: np.ndarray | None
-    starved_features: np.ndarray | None
+    rows: np.ndarray | None
+    feature_mass: np.ndarray
+    starved_features: np.ndarray
     constant_fit: np.ndarray | None
     absorbing: np.ndarray | None
     has_absorbing: bool
 
     @property
     def implicit_discount(self) -> float | None:
-        """The median over steps of :attr:`constant_fit`, or None."""
-        if self.constant_fit is None:
+        """The median of :attr:`constant_fit` over the regressions with transitions, or
+        None."""
+        if self.constant_fit is None or np.isnan(self.constant_fit).all():
             return None
-        return float(np.median(self.constant_fit))
+        return float(np.nanmedian(self.constant_fit))
 
     @property
     def implicit_horizon(self) -> float | None:
@@ -134,24 +137,23 @@ class FitDiagnostics:
 
     def summary(self) -> str:
         """A few lines: the regressions' rows, feature mass, shrinkage and absorbing steps."""
-        kind = "pooled (one regression)" if self.pooled else f"per-step ({self.horizon} regressions)"
+        kind = ("pooled (one regression)" if self.pooled
+                else f"per-step ({self.horizon} regressions)")
         lines = [f"fit: {kind}, H = {self.horizon}, gamma = {self.gamma:g}",
-                 f"  rows per regression: median {np.median(self.rows):g}"]
-        if self.feature_mass is None:
-            lines.append("  feature mass: not recorded (would need another read of the data)")
-        else:
-            lines.append(
-                f"  feature mass sum(phi_i^2): median {np.median(self.feature_mass):.3g} "
-                f"(gamma {self.gamma:g}); features below gamma: "
-                f"{100 * np.median(self.starved_features):.0f}%")
-        if self.constant_fit is None:
+                 "  transitions per regression: " + (
+                     "not recorded (would need another read of the data)" if self.rows is None
+                     else f"median {np.median(self.rows):g}, min {np.min(self.rows)}"),
+                 f"  feature mass sum(phi_i^2): median {np.median(self.feature_mass):.3g} "
+                 f"(gamma {self.gamma:g}); features below gamma: "
+                 f"{100 * np.median(self.starved_features):.0f}%"]
+        if self.implicit_discount is None:
             lines.append("  constant-target fit: not recorded (would need another read of "
                          "the data)")
         else:
             ih = self.implicit_horizon
             lines.append(
                 f"  constant-target fit (implicit discount): median "
-                f"{self.implicit_discount:.3g}, min {np.min(self.constant_fit):.3g}; implicit "
+                f"{self.implicit_discount:.3g}, min {np.nanmin(self.constant_fit):.3g}; implicit "
                 f"horizon {ih:.3g} steps")
         if self.absorbing is None:
             lines.append("  absorbing transitions: not recorded (known values not in memory)")
@@ -189,26 +191,27 @@ class StepRecorder:
         n = 1 if pooled else horizon
         self.horizon, self.gamma, self.pooled = horizon, gamma, pooled
         self.has_absorbing = has_absorbing
-        self.rows = np.zeros(n, dtype=np.int64)
+        self.rows = np.zeros(n)
         self.mass = np.full(n, np.nan)
         self.below = np.full(n, np.nan)
         self.const = np.full(n, np.nan)
         self.absorbing = np.zeros(n, dtype=np.int64)
         self.absorbing_known = True
+        self.const_known = True
 
     def record(self, i: int, E, factor, weights, known) -> None:
         """Regression ``i``: its operator ``E`` (a held or chunked ridge operator), its
         factor (None: the chunked operator's), its row weights and its known next values
         (``(n, A)``; None: none given; ``False``: not in memory)."""
-        n = E.n_points
-        self.rows[i] = n
-        diag, sums = _gram_diagonal_and_sums(E, factor, weights)
-        if diag is not None:
-            self.mass[i] = np.median(diag)
-            self.below[i] = np.mean(diag < self.gamma)
-        if sums is not None:
-            total = float(n) if weights is None else float(np.sum(weights))
-            # E(1) = Lambda^{-1} Phi^T W 1, solved as the operator solves (its cache untouched)
+        diag, sums, used, total = _gram_diagonal_and_sums(E, factor, weights)
+        self.rows[i] = np.nan if used is None else used
+        self.mass[i] = np.median(diag)
+        self.below[i] = np.mean(diag < self.gamma)
+        if sums is None or total is None:
+            self.const_known = False
+        elif total > 0:  # no transition: NaN
+            # E(1) = Lambda^{-1} Phi^T W 1, solved as the operator solves (its cache untouched);
+            # the mean of the fitted constant over the transitions
             self.const[i] = float(sums @ E._solve_sums(sums)) / total
         if known is False:
             self.absorbing_known = False
@@ -216,20 +219,20 @@ class StepRecorder:
             self.absorbing[i] = int(np.count_nonzero(~np.isnan(known).all(axis=1)))
 
     def report(self) -> FitDiagnostics:
-        def kept(x):
-            return None if np.isnan(x).any() else x
+        rows = None if np.isnan(self.rows).any() else self.rows.astype(np.int64)
         return FitDiagnostics(
-            self.horizon, self.gamma, self.pooled, self.rows, kept(self.mass), kept(self.below),
-            kept(self.const), self.absorbing if self.absorbing_known else None,
-            self.has_absorbing)
+            self.horizon, self.gamma, self.pooled, rows, self.mass, self.below,
+            self.const if self.const_known else None,
+            self.absorbing if self.absorbing_known else None, self.has_absorbing)
 
 
 def _gram_diagonal_and_sums(E, factor, weights):
-    """``(diag(Phi^T W Phi), Phi^T W 1)`` of a regression, from what the fit holds: the primal
-    Cholesky factor and the column sums a chunked operator kept (or, for rows summing to 1,
-    ``Phi^T W Phi 1`` from the factor); the rows when they are in memory. None for a number
-    that would need another read of the data (files, Dask arrays). The operator's state is
-    not changed."""
+    """``(diag(Phi^T W Phi), Phi^T W 1, non-empty rows, their total weight)`` of a
+    regression, from what the fit holds: the primal Cholesky factor and the column sums a
+    chunked operator kept (or, for rows summing to 1, ``Phi^T W Phi 1`` from the factor); the
+    rows when they are in memory. None for a number that would need another read of the data
+    (files, Dask arrays). Empty rows (steps after an episode's end) are no transitions. The
+    operator's state is not changed."""
     if factor is None:  # chunked: the primal factor and the sums that rode along with it
         return _chunked_diagonal_and_sums(E, weights)
     phi = E.phi
@@ -238,10 +241,12 @@ def _gram_diagonal_and_sums(E, factor, weights):
         phi = sp.csr_matrix(phi)
         diag = np.asarray(phi.multiply(phi).T @ w).ravel()
         sums = np.asarray(phi.T @ w).ravel()
+        used = phi.getnnz(axis=1) > 0
     else:
         diag = np.einsum("ij,ij,i->j", phi, phi, w)
         sums = w @ phi
-    return diag, sums
+        used = phi.any(axis=1)
+    return diag, sums, int(used.sum()), float(w[used].sum())
 
 
 def _chunked_diagonal_and_sums(E, weights):
@@ -250,15 +255,23 @@ def _chunked_diagonal_and_sums(E, weights):
     chol = E.factor.chol  # Lambda = L L^T = Phi^T W Phi + gamma I
     diag = np.einsum("ij,ij->i", chol, chol) - E.gamma
     source = E.source
+    n = E.n_points
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
     sums = E._sums
     if sums is None and weights is None:
         sums = source.phi_sums(E.h)  # stored with the data, or kept from an earlier fit
     if sums is None and source.unit_rows:  # Phi^T W 1 = Phi^T W Phi 1_d
         sums = chol @ (chol.T @ np.ones(chol.shape[0])) - E.gamma
-    if sums is None and isinstance(source.phi, ArrayField):  # rows in memory
-        w = np.ones(E.n_points) if weights is None else np.asarray(weights, dtype=float)
-        sums = w @ np.asarray(source.phi.read(E.h), dtype=float)
-    return diag, sums
+    row_sums = source.phi_row_sums
+    if source.unit_rows or (row_sums is not None and row_sums[0] > 0):  # no empty row
+        return diag, sums, n, float(w.sum())
+    if isinstance(source.phi, ArrayField):  # rows in memory
+        rows = np.asarray(source.phi.read(E.h), dtype=float)
+        if sums is None:
+            sums = w @ rows
+        used = rows.any(axis=1)
+        return diag, sums, int(used.sum()), float(w[used].sum())
+    return diag, sums, None, None
 
 
 def known_rows(next_form, h: int):
