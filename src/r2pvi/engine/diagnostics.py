@@ -250,8 +250,6 @@ def _gram_diagonal_and_sums(E, factor, weights):
 
 
 def _chunked_diagonal_and_sums(E, weights):
-    from ..data.storage.memory import ArrayField
-
     chol = E.factor.chol  # Lambda = L L^T = Phi^T W Phi + gamma I
     diag = np.einsum("ij,ij->i", chol, chol) - E.gamma
     source = E.source
@@ -265,8 +263,9 @@ def _chunked_diagonal_and_sums(E, weights):
     row_sums = source.phi_row_sums
     if source.unit_rows or (row_sums is not None and row_sums[0] > 0):  # no empty row
         return diag, sums, n, float(w.sum())
-    if isinstance(source.phi, ArrayField):  # rows in memory
-        rows = np.asarray(source.phi.read(E.h), dtype=float)
+    held = source.phi.float64_array()  # the rows when held in memory, else None
+    if held is not None:
+        rows = held[E.h]
         if sums is None:
             sums = w @ rows
         used = rows.any(axis=1)
@@ -279,10 +278,9 @@ def known_rows(next_form, h: int):
     gives none, False when reading them would be another read of the data (files)."""
     if not next_form.has_known_values:
         return None
-    from ..data.storage.memory import ArrayField
-
     table = getattr(next_form, "known_table", None)
     field = getattr(next_form, "next_values", getattr(next_form, "known_values", None))
-    if table is None and not isinstance(field, ArrayField):
+    held = getattr(field, "float64_array", None)
+    if table is None and (held is None or held() is None):  # not held in memory
         return False
     return next_form.known(h)
