@@ -170,3 +170,22 @@ def test_empty_rows_after_an_episode_ends_are_no_transitions(K):
         phi[:, h].T @ phi[:, h] + np.eye(d), phi[:, h].T @ np.ones(K))))
         for h, n in enumerate(report.rows)]
     np.testing.assert_allclose(report.constant_fit, expected, rtol=1e-10)
+
+
+def test_a_dataset_in_files_records_without_reading_its_files_again(tmp_path):
+    K, H, d, A = 300, 20, 6, 2
+    nv = np.full((K, H, A), np.nan)
+    nv[:5, 3] = 0.0
+    ds = _dataset(K=K, H=H, d=d, next_values=nv)
+    ds.save(tmp_path / "data")
+    on_disk = OfflineDataset.open(tmp_path / "data")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StarvedFitWarning)
+        mem = PEVI().fit(ds).fit_report_
+        disk = PEVI().fit(on_disk).fit_report_
+    # rows on the simplex: E(1) from the Gram factor, no read of the files
+    np.testing.assert_allclose(disk.constant_fit, mem.constant_fit, rtol=1e-10)
+    np.testing.assert_allclose(disk.feature_mass, mem.feature_mass, rtol=1e-10)
+    assert mem.absorbing[3] == 5
+    assert disk.absorbing is None or disk.absorbing.tolist() == mem.absorbing.tolist()
+    assert disk.summary()
