@@ -192,8 +192,7 @@ class StepRecorder:
         self.horizon, self.gamma, self.pooled = horizon, gamma, pooled
         self.has_absorbing = has_absorbing
         self.rows = np.zeros(n)
-        self.mass = np.full(n, np.nan)
-        self.below = np.full(n, np.nan)
+        self.diag = [None] * n
         self.const = np.full(n, np.nan)
         self.absorbing = np.zeros(n, dtype=np.int64)
         self.absorbing_known = True
@@ -205,8 +204,7 @@ class StepRecorder:
         (``(n, A)``; None: none given; ``False``: not in memory)."""
         diag, sums, used, total = _gram_diagonal_and_sums(E, factor, weights)
         self.rows[i] = np.nan if used is None else used
-        self.mass[i] = np.median(diag)
-        self.below[i] = np.mean(diag < self.gamma)
+        self.diag[i] = diag
         if sums is None or total is None:
             self.const_known = False
         elif total > 0:  # no transition: NaN
@@ -220,8 +218,10 @@ class StepRecorder:
 
     def report(self) -> FitDiagnostics:
         rows = None if np.isnan(self.rows).any() else self.rows.astype(np.int64)
+        diag = np.array(self.diag)  # (S, d): the medians of every step at once
         return FitDiagnostics(
-            self.horizon, self.gamma, self.pooled, rows, self.mass, self.below,
+            self.horizon, self.gamma, self.pooled, rows, np.median(diag, axis=1),
+            np.mean(diag < self.gamma, axis=1),
             self.const if self.const_known else None,
             self.absorbing if self.absorbing_known else None, self.has_absorbing)
 
@@ -245,8 +245,25 @@ def _gram_diagonal_and_sums(E, factor, weights):
     else:
         diag = np.einsum("ij,ij,i->j", phi, phi, w)
         sums = w @ phi
-        used = phi.any(axis=1)
-    return diag, sums, int(used.sum()), float(w[used].sum())
+        used = _non_empty(phi, E.nonnegative_features)
+    return (diag, sums) + _transitions(used, weights)
+
+
+def _non_empty(rows: np.ndarray, nonnegative) -> np.ndarray:
+    """Which dense rows hold a non-zero feature: a non-zero row sum (one product), and for
+    the rows summing to 0 (empty ones, or signed features that cancel) a look at them."""
+    used = rows @ np.ones(rows.shape[1]) != 0
+    if not nonnegative:
+        zero = np.flatnonzero(~used)
+        if zero.size:
+            used[zero] = rows[zero].any(axis=1)
+    return used
+
+
+def _transitions(used: np.ndarray, weights) -> tuple[int, float]:
+    """The count of non-empty rows and their total weight."""
+    count = int(np.count_nonzero(used))
+    return count, float(count) if weights is None else float(weights[used].sum())
 
 
 def _chunked_diagonal_and_sums(E, weights):
@@ -254,7 +271,6 @@ def _chunked_diagonal_and_sums(E, weights):
     diag = np.einsum("ij,ij->i", chol, chol) - E.gamma
     source = E.source
     n = E.n_points
-    w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
     sums = E._sums
     if sums is None and weights is None:
         sums = source.phi_sums(E.h)  # stored with the data, or kept from an earlier fit
@@ -262,14 +278,13 @@ def _chunked_diagonal_and_sums(E, weights):
         sums = chol @ (chol.T @ np.ones(chol.shape[0])) - E.gamma
     row_sums = source.phi_row_sums
     if source.unit_rows or (row_sums is not None and row_sums[0] > 0):  # no empty row
-        return diag, sums, n, float(w.sum())
+        return diag, sums, n, float(n) if weights is None else float(np.sum(weights))
     held = source.phi.float64_array()  # the rows when held in memory, else None
     if held is not None:
         rows = held[E.h]
         if sums is None:
-            sums = w @ rows
-        used = rows.any(axis=1)
-        return diag, sums, int(used.sum()), float(w[used].sum())
+            sums = (np.ones(n) if weights is None else weights) @ rows
+        return (diag, sums) + _transitions(_non_empty(rows, E.nonnegative_features), weights)
     return diag, sums, None, None
 
 
