@@ -12,6 +12,7 @@ from .algorithms import load_estimator as load
 from .data import OfflineDataset, SimplexFeatureWarning
 from .data.storage import DatasetWriter
 from .duals import FDivergence, cressie_read
+from .engine.diagnostics import FitDiagnostics, StarvedFitWarning
 
 try:
     __version__ = version("r2pvi")
@@ -25,6 +26,8 @@ __all__ = [
     "OfflineDataset",
     "DatasetWriter",
     "SimplexFeatureWarning",
+    "StarvedFitWarning",
+    "FitDiagnostics",
     "FDivergence",
     "cressie_read",
     "LinearEstimator",

@@ -19,6 +19,7 @@ from .._validation import as_float_array, check_choice, check_scalar, plain
 from ..data import OfflineDataset
 from ..duals.gram import GramFactor, GramMatrixError
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
+from ..engine.diagnostics import warn_if_starved
 from ._model_file import (
     ESTIMATOR_REGISTRY,
     MODEL_FORMAT_VERSION,
@@ -165,7 +166,11 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         Raises ``ValueError`` when the rewards (or those of ``reward_weights``) leave
         ``[0, r_max]``, naming the ``r_max`` to pass or the shift to apply (see
         :func:`check_reward_range`): the clip of ``Q_h`` to ``[0, (H - h) r_max]`` would
-        otherwise change the values silently."""
+        otherwise change the values silently.
+
+        Sets ``fit_report_`` (:class:`~r2pvi.engine.diagnostics.FitDiagnostics`: rows,
+        shrinkage of a constant target, absorbing transitions of each regression) and warns
+        (:class:`~r2pvi.StarvedFitWarning`) when a per-step fit starves."""
         if not isinstance(dataset, OfflineDataset):
             raise TypeError(
                 f"fit expects an r2pvi.OfflineDataset, got {type(dataset).__name__}; build one "
@@ -178,6 +183,9 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         with limit_blas():  # one BLAS thread by default: see r2pvi._threads
             model = self._fit_model(dataset, params)
         self._set_fitted(model, params, dataset.n_actions)
+        # What the fit saw of its regressions; a per-step fit that cannot learn says so.
+        self.fit_report_ = model.diagnostics
+        warn_if_starved(self.fit_report_)
         return self
 
     def _set_fitted(self, model: FittedModel, params: dict, n_actions: int):

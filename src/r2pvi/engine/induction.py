@@ -34,6 +34,7 @@ from ..data.storage._finite import FIELDS, NonFiniteRows
 from ..duals._scratch import release
 from ..duals.gram import GramFactor
 from ..duals.operator import ExpectationOperator, RidgeExpectation
+from .diagnostics import StepRecorder, known_rows
 from .q import FittedModel, _NextValue
 from .steps import ChunkedRidgeExpectation, _factor, _streams, pooled_steps
 
@@ -154,6 +155,9 @@ def backward_induction(
     # Unchecked data may hold infinities until a step's checks find them: their arithmetic
     # (inf * 0, inf - inf) must not warn first.
     quiet = np.errstate(invalid="ignore", over="ignore") if checked != FIELDS else nullcontext()
+    # What the fit can see of its regressions (engine.diagnostics): from the factor and the
+    # sums the loop forms anyway.
+    recorder = StepRecorder(H, gamma, time_homogeneous, dataset.has_known_values)
     try:
         with quiet:
             for h in range(H - 1, -1, -1):
@@ -220,10 +224,14 @@ def backward_induction(
                 inv_diags[h] = inv_diag
                 if ellip is not None:
                     ellip[h] = step_ellip
+                if not time_homogeneous:
+                    recorder.record(h, E, factor, sw, known_rows(source.next, h))
+                elif h == 0:  # the one pooled regression, after its last use by a rule
+                    recorder.record(0, E, factor, sw, next_known)
     finally:
         release()  # the duals' reusable work buffers
     return FittedModel(weights, thetas, inv_diags, ellip, next_state_values,
-                       moments if value_moments else None)
+                       moments if value_moments else None, recorder.report())
 
 
 def _apply_rule(rule: StepRule, E: RidgeExpectation, factor: GramFactor, v, ctx: StepContext):

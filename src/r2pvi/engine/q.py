@@ -33,6 +33,8 @@ class FittedModel:
     value_moments : (H, d, 2) ``E_h([U, U^2])``, ``U = V_{h+1} / r_max``: the ridge estimates
         of the first two moments of the next-step value, in units of ``r_max`` (finite for any
         finite ``r_max``), under step h's operator (variance-aware variants)
+    diagnostics : :class:`~r2pvi.engine.diagnostics.FitDiagnostics` or None
+        What the fit saw of its regressions (rows, shrinkage, absorbing transitions)
     """
 
     weights: np.ndarray
@@ -41,6 +43,7 @@ class FittedModel:
     elliptical: list | None = None
     next_state_values: np.ndarray | None = None
     value_moments: np.ndarray | None = None
+    diagnostics: object | None = None
 
 
 def q_values_from_model(model: FittedModel, phi_all, h: int, *, penalty, beta, r_max,
