@@ -95,3 +95,25 @@ def test_cluster_fit_names_a_non_finite_next_state_feature(client):
     ds = r2pvi.OfflineDataset.from_dask(*_lazy(phi, rewards, next_phi))
     with pytest.raises(ValueError, match=r"12345"):
         r2pvi.R2PVI("kl", lam=0.5, beta=0.1).fit(ds)
+
+
+def test_scale_out_guide_runs_and_its_cluster_fit_equals_the_disk_fit(tmp_path):
+    """docs/scale-out.md's example, run as a script in a fresh interpreter (as a user runs
+    it; its worker processes import it)."""
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "scale-out.md"
+    (block,) = re.findall(r"```python\n(.*?)```", doc.read_text(), flags=re.S)
+    script = tmp_path / "scale_out.py"
+    script.write_text(block)
+    src = str(Path(r2pvi.__file__).resolve().parents[1])
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [src] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip().splitlines()[-1] == "True"
