@@ -18,25 +18,44 @@ class DaskField(Field):
     def __init__(self, array):
         self.array = array
         self.shape, self.dtype = tuple(array.shape), np.dtype(array.dtype)
+        self._persisted = None  # the array persisted on a distributed cluster (its client)
+
+    def data(self):
+        """The array to compute from: with a ``distributed`` client active, the array
+        persisted on its workers once (the first time it is asked), so that later graphs name
+        the workers' chunks instead of carrying the numbers; otherwise the array as given."""
+        client = active_client()
+        if client is None:
+            return self.array
+        if self._persisted is None or self._persisted[0] is not client:
+            self._persisted = (client, client.persist(self.array))
+        return self._persisted[1]
+
+    def __getstate__(self):
+        # A field travels to the workers inside the tasks that name its errors: without the
+        # client and the persisted copy (neither belongs on a worker).
+        state = dict(self.__dict__)
+        state["_persisted"] = None
+        return state
 
     def origin(self, name):
         return dask_origin(name)
 
     def read(self, h, start=0, stop=None, out=None):
-        return np.asarray(self.array[h, start:stop].compute())
+        return np.asarray(self.data()[h, start:stop].compute())
 
     def lazy(self):
         return self.array
 
     def take(self, idx):
-        return np.asarray(self.array[:, np.asarray(idx)].compute())
+        return np.asarray(self.data()[:, np.asarray(idx)].compute())
 
     def subset(self, idx, name):
         return in_memory(self, idx, name)
 
     def lazy_step(self, h):
         """Step ``h`` as a lazy ``(K, d)`` Dask array chunked along trajectories only."""
-        x = self.array[h]
+        x = self.data()[h]
         return x.rechunk((x.chunks[0], -1))
 
     def chunks(self, h, chunk):
@@ -63,11 +82,44 @@ class DaskField(Field):
     def bounds(self):
         import dask
 
-        low, high = dask.compute(self.array.min(), self.array.max())
+        a = self.data()
+        low, high = dask.compute(a.min(), a.max())
         return float(low), float(high)
 
     def remote_next_values(self, nxt, h, qmax):
         return _dask_values(nxt, h, qmax)
+
+
+def active_client():
+    """The ``distributed`` client Dask computes with, or None (Dask's local schedulers, or
+    ``distributed`` not installed)."""
+    try:
+        from distributed import default_client
+    except ImportError:  # pragma: no cover - dask without distributed
+        return None
+    try:
+        client = default_client()
+    except ValueError:  # no client
+        return None
+    import dask.base
+
+    return client if dask.base.get_scheduler() == client.get else None
+
+
+def _columns(y, chunks):
+    """``y (K, m)`` as a Dask array chunked like the features: on a ``distributed`` cluster
+    its chunks are scattered to the workers (the graph names them; a large graph would carry
+    the numbers), otherwise the array wrapped as it is."""
+    import dask.array as da
+
+    client = active_client()
+    if client is None:
+        return da.from_array(y, chunks=(chunks, -1))
+    bounds = np.cumsum((0,) + tuple(chunks))
+    parts = [y[s:e] for s, e in zip(bounds[:-1], bounds[1:], strict=True)]
+    futures = client.scatter(parts)
+    return da.concatenate([da.from_delayed(f, shape=p.shape, dtype=p.dtype)
+                           for f, p in zip(futures, parts, strict=True)])
 
 
 def _quiet():
@@ -118,7 +170,7 @@ def _dask_products(field: DaskField, h, cols, weights, with_gram):
         return out.reshape(1, d * width)
 
     nb = len(x.chunks[0])
-    parts = da.map_blocks(block, x, da.from_array(y, chunks=(x.chunks[0], -1)),
+    parts = da.map_blocks(block, x, _columns(y, x.chunks[0]),
                           chunks=((1,) * nb, (d * width,)), dtype=np.float64)
     total = np.asarray(parts.sum(axis=0).compute(), dtype=np.float64).reshape(d, width)
     gram = total[:, :d].copy() if with_gram else None
@@ -130,12 +182,22 @@ def _dask_products(field: DaskField, h, cols, weights, with_gram):
     return gram, out
 
 
+class _ChunkNonFinite(Exception):
+    """A worker's :class:`NonFiniteRows` with the chunk's first trajectory: plain arguments,
+    so that it travels back to the client, which names the entry."""
+
+    def __init__(self, start, index, value, known):
+        super().__init__(start, index, value, known)
+        self.start, self.index, self.value, self.known = start, index, value, known
+
+
 def _dask_values(nxt, h, qmax):
     """Next-state values of a :class:`~.next_states.StoredNext` over a Dask field computed on
-    the Dask workers, one task per trajectory chunk."""
+    the Dask workers, one task per trajectory chunk. The tasks carry ``qmax`` and the
+    persisted chunks' names, nothing of ``nxt`` (whose fields may hold their data)."""
     import dask.array as da
 
-    feats = nxt.next_phi.array[h]
+    feats = nxt.next_phi.data()[h]
     nonneg = nxt.nonnegative
 
     def block(f, k=None, block_info=None):
@@ -147,11 +209,15 @@ def _dask_values(nxt, h, qmax):
                             nn)
         except NonFiniteRows as exc:  # the block's first trajectory, from Dask
             start = 0 if block_info is None else block_info[0]["array-location"][0][0]
-            raise nxt.nonfinite(h, int(start), exc) from None
+            raise _ChunkNonFinite(int(start), exc.index, exc.value, exc.known) from None
 
     if nxt.next_values is None:
         v = da.map_blocks(block, feats, drop_axis=[1, 2], dtype=np.float64)
     else:
-        kv = nxt.next_values.array[h].rechunk((feats.chunks[0], -1))
+        kv = nxt.next_values.data()[h].rechunk((feats.chunks[0], -1))
         v = da.map_blocks(block, feats, kv[:, :, None], drop_axis=[1, 2], dtype=np.float64)
-    return np.asarray(v.compute(), dtype=np.float64)
+    try:
+        return np.asarray(v.compute(), dtype=np.float64)
+    except _ChunkNonFinite as exc:
+        raise nxt.nonfinite(h, exc.start, NonFiniteRows(exc.index, exc.value, exc.known)) \
+            from None

@@ -1,0 +1,119 @@
+"""Fit time of Dask arrays on a ``distributed`` cluster against the same data in memory.
+
+Builds seeded ``phi``, ``rewards``, ``next_phi`` with NumPy, wraps them with
+``dask.array.from_array`` (chunks along trajectories), starts
+``LocalCluster(processes=True, n_workers=2, threads_per_worker=1)`` and a ``Client``, and
+fits ``R2PVI('kl')`` and ``R2PVI('tv')`` from ``OfflineDataset.from_dask`` (the arrays as
+given, and persisted on the cluster first) and from ``OfflineDataset.from_features``. Prints
+wall and CPU (client process) seconds, the ratio to the in-memory fit, whether
+``distributed`` warned of a large graph, and the largest weight difference::
+
+    python benchmarks/bench_dask_cluster.py                          # K = 2e5, H = 10, d = 30
+    python benchmarks/bench_dask_cluster.py --K 1000000 --H 20 --d 30  # the target size
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+import warnings
+
+import numpy as np
+
+
+class _Records(logging.Handler):
+    def __init__(self):
+        super().__init__()
+        self.messages = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+def make_arrays(K, H, d, A, seed=0):
+    """``phi (K, H, d)``, ``rewards (K, H)``, ``next_phi (K, H, A, d)``: rows on the simplex,
+    rewards linear in the features (seeded)."""
+    rng = np.random.default_rng(seed)
+    phi = rng.dirichlet(np.ones(d), size=(K, H))
+    next_phi = rng.dirichlet(np.ones(d), size=(K, H, A))
+    theta = rng.uniform(0, 1, size=(H, d))
+    rewards = np.einsum("khd,hd->kh", phi, theta)
+    return phi, rewards, next_phi
+
+
+def timed_fit(make_ds, divergence):
+    """``(wall, cpu, weights, large-graph messages)`` of one fit (the dataset built inside
+    the timing: persisting or scattering is part of the cost)."""
+    import r2pvi
+
+    records = _Records()
+    log = logging.getLogger("distributed")
+    log.addHandler(records)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            w0, c0 = time.perf_counter(), time.process_time()
+            ds = make_ds()
+            est = r2pvi.R2PVI(divergence, lam=0.5, beta=0.1).fit(ds)
+            wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    finally:
+        log.removeHandler(records)
+    large = [m for m in records.messages + [str(w.message) for w in caught]
+             if "large graph" in m.lower()]
+    return wall, cpu, np.asarray(est.weights_), large
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--K", type=int, default=200_000)
+    parser.add_argument("--H", type=int, default=10)
+    parser.add_argument("--d", type=int, default=30)
+    parser.add_argument("--A", type=int, default=2)
+    parser.add_argument("--chunk", type=int, default=0,
+                        help="trajectories per Dask chunk (0: K / (4 workers))")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--divergences", nargs="+", default=["kl", "tv"])
+    parser.add_argument("--skip-unpersisted", action="store_true",
+                        help="skip the arrays as given (the data travels with each graph)")
+    args = parser.parse_args(argv)
+
+    import dask.array as da
+    from distributed import Client, LocalCluster
+
+    import r2pvi
+
+    K, H, d, A = args.K, args.H, args.d, args.A
+    chunk = args.chunk or max(1, -(-K // (4 * args.workers)))
+    phi, rewards, next_phi = make_arrays(K, H, d, A)
+    print(f"K={K} H={H} d={d} A={A} chunk={chunk} workers={args.workers} "
+          f"({(phi.nbytes + next_phi.nbytes + rewards.nbytes) / 2**20:.0f} MiB)")
+    with LocalCluster(processes=True, n_workers=args.workers, threads_per_worker=1,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+
+        def lazy():
+            return (da.from_array(phi, chunks=(chunk, H, d)),
+                    da.from_array(rewards, chunks=(chunk, H)),
+                    da.from_array(next_phi, chunks=(chunk, H, A, d)))
+
+        persisted = client.persist(list(lazy()))
+        client.wait_for_workers(args.workers)
+        from distributed import wait
+
+        wait(persisted)
+        kinds = {"memory": lambda: r2pvi.OfflineDataset.from_features(phi, rewards, next_phi),
+                 "dask persisted": lambda: r2pvi.OfflineDataset.from_dask(*persisted)}
+        if not args.skip_unpersisted:
+            kinds["dask from_array"] = lambda: r2pvi.OfflineDataset.from_dask(*lazy())
+        for div in args.divergences:
+            res = {name: timed_fit(make, div) for name, make in kinds.items()}
+            base = res["memory"]
+            for name, (wall, cpu, w, large) in res.items():
+                diff = float(np.max(np.abs(w - base[2])))
+                print(f"{div:3s} {name:16s} wall {wall:7.2f} s  cpu {cpu:7.2f} s  "
+                      f"x{wall / base[0]:6.1f}  max|dw| {diff:.1e}  "
+                      f"large-graph warnings {len(large)}")
+
+
+if __name__ == "__main__":
+    main()

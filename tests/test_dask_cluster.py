@@ -1,0 +1,119 @@
+"""Dask arrays fitted on a ``distributed`` cluster: the data is persisted on the workers once,
+so no step's graph carries it, and the fit equals the in-memory fit."""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+import numpy as np
+import pytest
+
+import r2pvi
+
+da = pytest.importorskip("dask.array")
+distributed = pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def client():
+    with distributed.LocalCluster(processes=False, n_workers=2, threads_per_worker=1,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as c:
+        yield c
+
+
+def _arrays(K=20_000, H=6, d=8, A=2, seed=3):
+    rng = np.random.default_rng(seed)
+    phi = rng.dirichlet(np.ones(d), size=(K, H))
+    next_phi = rng.dirichlet(np.ones(d), size=(K, H, A))
+    rewards = rng.uniform(size=(K, H))
+    return phi, rewards, next_phi
+
+
+class _Records(logging.Handler):
+    def __init__(self):
+        super().__init__()
+        self.messages = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+def _fit_recording(ds, divergence):
+    """The fit and the ``distributed`` large-graph warnings it caused (threshold 200 kB: a
+    graph carrying one step's features, here 1.3 MB, warns)."""
+    import dask
+
+    records = _Records()
+    log = logging.getLogger("distributed")
+    log.addHandler(records)
+    try:
+        with warnings.catch_warnings(record=True) as caught, \
+                dask.config.set({"distributed.admin.large-graph-warning-threshold": "200kB"}):
+            warnings.simplefilter("always")
+            est = r2pvi.R2PVI(divergence, lam=0.5, beta=0.1).fit(ds)
+    finally:
+        log.removeHandler(records)
+    return est, [m for m in records.messages + [str(w.message) for w in caught]
+                 if "large graph" in m.lower()]
+
+
+def _lazy(phi, rewards, next_phi, chunk=5000):
+    K, H, A, d = next_phi.shape
+    return (da.from_array(phi, chunks=(chunk, H, d)), da.from_array(rewards, chunks=(chunk, H)),
+            da.from_array(next_phi, chunks=(chunk, H, A, d)))
+
+
+@pytest.mark.parametrize("divergence", ["kl", "tv"])
+def test_cluster_fit_equals_memory_and_sends_the_data_once(client, divergence):
+    phi, rewards, next_phi = _arrays()
+    memory = r2pvi.R2PVI(divergence, lam=0.5, beta=0.1).fit(
+        r2pvi.OfflineDataset.from_features(phi, rewards, next_phi))
+    est, large = _fit_recording(r2pvi.OfflineDataset.from_dask(*_lazy(phi, rewards, next_phi)),
+                                divergence)
+    # Arrays wrapping client memory travel once each (phi, rewards, next_phi), when first
+    # persisted, not with every step's graph (H = 6 steps).
+    assert len(large) <= 3
+    np.testing.assert_allclose(est.weights_, memory.weights_, rtol=0, atol=1e-10)
+
+
+def test_cluster_fit_of_persisted_arrays_sends_no_large_graph(client):
+    phi, rewards, next_phi = _arrays()
+    persisted = client.persist(list(_lazy(phi, rewards, next_phi)))
+    distributed.wait(persisted)
+    memory = r2pvi.R2PVI("kl", lam=0.5, beta=0.1).fit(
+        r2pvi.OfflineDataset.from_features(phi, rewards, next_phi))
+    est, large = _fit_recording(r2pvi.OfflineDataset.from_dask(*persisted), "kl")
+    assert large == []
+    np.testing.assert_allclose(est.weights_, memory.weights_, rtol=0, atol=1e-10)
+
+
+def test_cluster_fit_names_a_non_finite_next_state_feature(client):
+    phi, rewards, next_phi = _arrays()
+    next_phi[12_345, 2, 1, 4] = np.nan
+    ds = r2pvi.OfflineDataset.from_dask(*_lazy(phi, rewards, next_phi))
+    with pytest.raises(ValueError, match=r"12345"):
+        r2pvi.R2PVI("kl", lam=0.5, beta=0.1).fit(ds)
+
+
+def test_scale_out_guide_runs_and_its_cluster_fit_equals_the_disk_fit(tmp_path):
+    """docs/scale-out.md's example, run as a script in a fresh interpreter (as a user runs
+    it; its worker processes import it)."""
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "scale-out.md"
+    (block,) = re.findall(r"```python\n(.*?)```", doc.read_text(), flags=re.S)
+    script = tmp_path / "scale_out.py"
+    script.write_text(block)
+    src = str(Path(r2pvi.__file__).resolve().parents[1])
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [src] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip().splitlines()[-1] == "True"
