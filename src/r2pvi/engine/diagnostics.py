@@ -108,7 +108,7 @@ class FitDiagnostics:
     @property
     def steps_without_absorbing(self) -> int | None:
         """How many regressions whose next values enter the fit (a per-step fit's steps
-        ``0 .. H-2``; the pooled one) hold no row with a known next-state value, or None."""
+        ``0`` to ``H-2``; the pooled one) hold no row with a known next-state value, or None."""
         used = self._used_absorbing()
         return None if used is None else int(np.count_nonzero(used == 0))
 
