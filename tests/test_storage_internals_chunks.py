@@ -125,17 +125,6 @@ def test_each_step_reads_its_features_as_few_times_as_the_rule_needs(
 
 
 # ---------------------------------------------------------------- Dask: products on the workers
-@pytest.fixture(scope="module")
-def cluster_client():
-    distributed = pytest.importorskip("distributed")
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                                       dashboard_address=None)
-    client = distributed.Client(cluster)
-    yield client
-    client.close()
-    cluster.close()
-
-
 def test_dask_products_are_summed_on_the_workers(cluster_client):
     """TV, KL and PEVI steps need only ``Lambda`` and ``Phi^T y``: those are formed on the
     workers, so the client never reads the step's features (any read raises here); chi^2

@@ -174,17 +174,6 @@ def test_feature_map_next_states_are_computed_chunk_by_chunk(tmp_path):
         OfflineDataset.from_observations(obs, act + 1, rewards, nxt, fmap, A)
 
 
-@pytest.fixture(scope="module")
-def cluster_client():
-    distributed = pytest.importorskip("distributed")
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                                       dashboard_address=None)
-    client = distributed.Client(cluster)
-    yield client
-    client.close()
-    cluster.close()
-
-
 def test_dask_arrays_on_a_local_cluster_fit_as_in_memory(cluster_client):
     ds, mem = dask_and_memory(250)
     phi, rewards, nphi, _ = make_arrays()
