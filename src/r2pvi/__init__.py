@@ -13,6 +13,7 @@ from .data import OfflineDataset, SimplexFeatureWarning
 from .data.storage import DatasetWriter
 from .duals import FDivergence, cressie_read
 from .engine.diagnostics import FitDiagnostics, StarvedFitWarning
+from .engine.sizing import FeatureSizeWarning
 
 try:
     __version__ = version("r2pvi")
@@ -27,6 +28,7 @@ __all__ = [
     "DatasetWriter",
     "SimplexFeatureWarning",
     "StarvedFitWarning",
+    "FeatureSizeWarning",
     "FitDiagnostics",
     "FDivergence",
     "cressie_read",

@@ -20,6 +20,7 @@ from ..data import OfflineDataset
 from ..duals.gram import GramFactor, GramMatrixError
 from ..engine import PENALTIES, FittedModel, StepRule, backward_induction, q_values_from_model
 from ..engine.diagnostics import warn_if_starved
+from ..engine.sizing import warn_if_oversized
 from ._model_file import (
     ESTIMATOR_REGISTRY,
     MODEL_FORMAT_VERSION,
@@ -170,7 +171,9 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
 
         Sets ``fit_report_`` (:class:`~r2pvi.engine.diagnostics.FitDiagnostics`: rows,
         shrinkage of a constant target, absorbing transitions of each regression) and warns
-        (:class:`~r2pvi.StarvedFitWarning`) when a per-step fit starves."""
+        (:class:`~r2pvi.StarvedFitWarning`) when a per-step fit starves, and
+        (:class:`~r2pvi.FeatureSizeWarning`) when the features ``d`` outnumber the
+        transitions of every regression (per step, or pooled)."""
         if not isinstance(dataset, OfflineDataset):
             raise TypeError(
                 f"fit expects an r2pvi.OfflineDataset, got {type(dataset).__name__}; build one "
@@ -186,6 +189,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         # What the fit saw of its regressions; a per-step fit that cannot learn says so.
         self.fit_report_ = model.diagnostics
         warn_if_starved(self.fit_report_)
+        warn_if_oversized(self.fit_report_, dataset.n_features, dataset.n_trajectories)
         return self
 
     def _set_fitted(self, model: FittedModel, params: dict, n_actions: int):
