@@ -22,7 +22,7 @@ from r2pvi.engine import backward_induction
 
 # The MDP is defined once, with the regression tests that use it.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_guarantees_constrained import fail_state_mdp  # noqa: E402
+from helpers import fail_state_mdp  # noqa: E402
 
 
 class Spy(KLBallRule):

@@ -26,3 +26,11 @@ def cluster_client():
     yield client
     client.close()
     cluster.close()
+
+
+@pytest.fixture(scope="module")
+def stored(tmp_path_factory):
+    """The same numbers in memory, as a saved directory and written by chunks."""
+    from storage_helpers import stored_datasets
+
+    return stored_datasets(tmp_path_factory.mktemp("storage"))

@@ -21,3 +21,26 @@ def linear_data(scale=1.0, shift=0.0, seed=0, **kw):
     theta = rng.uniform(size=(H, D))
     r = scale * np.einsum("khd,hd->kh", phi, theta) + shift
     return OfflineDataset.from_features(phi, r, nxt, **kw), phi, r, nxt, theta
+
+
+def fail_state_mdp(seed=0, H=3, n_actions=2, reward_high=0.1, random_initial=False):
+    """A genuine linear MDP: 4 factors over 6 states; state 5 is an absorbing fail state
+    (V = 0, known value 0) reached through factor 3; factor 0 puts no mass on it. Rewards
+    ``theta ~ U(0, reward_high)`` (0 on factor 3); the initial distribution is uniform over
+    states 0-4, or a Dirichlet draw over them with ``random_initial``."""
+    from r2pvi.envs import FiniteLinearMDP
+
+    rng = np.random.default_rng(seed)
+    S, d = 6, 4
+    phi = rng.dirichlet(np.ones(d), size=(S, n_actions))
+    phi[5] = np.eye(d)[3]
+    mu = np.zeros((H, d, S))
+    for h in range(H):
+        mu[h, 0, :5] = rng.dirichlet(np.ones(5))  # no mass on the V = 0 state
+        mu[h, 1] = rng.dirichlet(np.ones(S))
+        mu[h, 2] = rng.dirichlet(np.ones(S))
+        mu[h, 3] = np.eye(S)[5]
+    theta = rng.uniform(0.0, reward_high, size=(H, d))
+    theta[:, 3] = 0.0
+    start = rng.dirichlet(np.ones(5)) if random_initial else np.full(5, 0.2)
+    return FiniteLinearMDP(phi, theta, mu, initial=np.r_[start, 0.0], fail_states=(5,))

@@ -23,16 +23,9 @@ from storage_helpers import (
     assert_same_fit,
     make_arrays,
     small_arrays,
-    stored_datasets,
 )
 
 from r2pvi import DatasetWriter, OfflineDataset
-
-
-@pytest.fixture(scope="module")
-def stored(tmp_path_factory):
-    """The same numbers in memory, as a saved directory and written by chunks."""
-    return stored_datasets(tmp_path_factory.mktemp("storage"))
 
 
 def test_directory_format_is_documented_step_major_and_lazy(stored):

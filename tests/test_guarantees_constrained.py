@@ -15,6 +15,7 @@ huge radii or ``r_max`` that lose the floor, a TV ball above the plain estimate 
 
 import numpy as np
 import pytest
+from helpers import fail_state_mdp
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -30,25 +31,6 @@ from r2pvi.engine import StepContext, StepRule, backward_induction
 from r2pvi.envs import FiniteLinearMDP, SimulatedLinearMDP
 
 # ------------------------------------------------------------------------------ helpers
-
-
-def fail_state_mdp(seed=0, H=3):
-    """A genuine linear MDP: 4 factors over 6 states; state 5 is an absorbing fail state
-    (V = 0) reached through factor 3; factor 0 puts no mass on it."""
-    rng = np.random.default_rng(seed)
-    S, A, d = 6, 2, 4
-    phi = rng.dirichlet(np.ones(d), size=(S, A))
-    phi[5] = np.eye(d)[3]
-    mu = np.zeros((H, d, S))
-    for h in range(H):
-        mu[h, 0, :5] = rng.dirichlet(np.ones(5))  # no mass on the V = 0 state
-        mu[h, 1] = rng.dirichlet(np.ones(S))
-        mu[h, 2] = rng.dirichlet(np.ones(S))
-        mu[h, 3] = np.eye(S)[5]
-    theta = rng.uniform(0.0, 0.1, size=(H, d))
-    theta[:, 3] = 0.0
-    initial = np.r_[np.full(5, 0.2), 0.0]
-    return FiniteLinearMDP(phi, theta, mu, initial=initial, fail_states=(5,))
 
 
 class Spy(StepRule):

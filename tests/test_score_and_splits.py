@@ -3,6 +3,7 @@
 import re
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -176,23 +177,9 @@ def test_bellman_score_is_zero_for_the_exact_q_of_deterministic_data():
     assert est.score(ds) == pytest.approx(0.0, abs=1e-10)
 
 
-def fail_state_mdp(seed=0, Hh=3):
-    """A linear MDP with 6 states, 3 actions, 4 factors; state 5 is an absorbing fail state
-    (known value 0) reached through factor 3."""
-    rng = np.random.default_rng(seed)
-    S, nA, d = 6, 3, 4
-    feats = rng.dirichlet(np.ones(d), size=(S, nA))
-    feats[5] = np.eye(d)[3]
-    mu = np.zeros((Hh, d, S))
-    for h in range(Hh):
-        mu[h, 0, :5] = rng.dirichlet(np.ones(5))
-        mu[h, 1] = rng.dirichlet(np.ones(S))
-        mu[h, 2] = rng.dirichlet(np.ones(S))
-        mu[h, 3] = np.eye(S)[5]
-    theta = rng.uniform(0.0, 1.0, size=(Hh, d))
-    theta[:, 3] = 0.0
-    initial = np.r_[rng.dirichlet(np.ones(5)), 0.0]
-    return FiniteLinearMDP(feats, theta, mu, initial=initial, fail_states=(5,))
+def fail_state_mdp(seed=0):
+    """The 6-state fail-state MDP with 3 actions, rewards up to 1 and a random start."""
+    return helpers.fail_state_mdp(seed, n_actions=3, reward_high=1.0, random_initial=True)
 
 
 def fqe_and_exact(seed):

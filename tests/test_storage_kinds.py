@@ -27,19 +27,12 @@ from storage_helpers import (
     dask_and_memory,
     make_arrays,
     set_chunk,
-    stored_datasets,
 )
 
 import r2pvi
 from r2pvi import DatasetWriter, OfflineDataset, engine
 from r2pvi.data.storage import CHUNK
 from r2pvi.envs import FiniteLinearMDP
-
-
-@pytest.fixture(scope="module")
-def stored(tmp_path_factory):
-    """The same numbers in memory, as a saved directory and written by chunks."""
-    return stored_datasets(tmp_path_factory.mktemp("storage"))
 
 
 @pytest.mark.parametrize("name", list(ESTIMATORS))
