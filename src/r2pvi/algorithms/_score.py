@@ -27,6 +27,7 @@ import numpy as np
 
 from .._validation import as_float_array, check_choice
 from ..data import OfflineDataset
+from ..duals import GramFactor
 
 __all__ = ["SCORE_KINDS", "bellman_residual", "fqe_value", "Scorer", "score_estimator"]
 
@@ -112,13 +113,12 @@ def fqe_value(est, dataset: OfflineDataset, initial_phi) -> float:
     """
     _check(est, dataset)
     x0 = _initial_features(initial_phi, dataset, dataset.n_features)
-    H, d = dataset.horizon, dataset.n_features
+    H = dataset.horizon
     r_max = est._fit_params["r_max"]
-    ridge = float(est.gamma) * np.eye(d)
     w_next = None
     for h in range(H - 1, -1, -1):
         phi, r, nphi, known = dataset.step(h)
-        phi, nphi = _dense(phi), _dense(nphi)
+        nphi = _dense(nphi)
         y = np.array(r, dtype=np.float64)
         if h < H - 1:
             act = est.act(nphi, h + 1, known)
@@ -128,7 +128,7 @@ def fqe_value(est, dataset: OfflineDataset, initial_phi) -> float:
                 k = np.asarray(known, dtype=np.float64)[rows, act]
                 q_pi = np.where(np.isnan(k), q_pi, k)
             y += q_pi
-        w_next = np.linalg.solve(phi.T @ phi + ridge, phi.T @ y)
+        w_next = GramFactor(phi, float(est.gamma)).regress(y)  # the fit's ridge regression
     a0 = est.act(x0, 0)
     return float(np.mean(np.clip(x0[np.arange(x0.shape[0]), a0] @ w_next, 0.0, H * r_max)))
 
