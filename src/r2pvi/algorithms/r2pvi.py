@@ -9,7 +9,13 @@ from .._validation import check_choice, check_scalar
 from ..duals.fdivergence import FDivergence, get_divergence
 from ..duals.general_f import f_regularized
 from ..duals.ranges import project_onto_range, value_extent, value_range, value_unit
-from ..duals.regularized import KL_FORMS, chi2_regularized, kl_regularized, tv_regularized
+from ..duals.regularized import (
+    KL_FORMS,
+    MOMENTS,
+    chi2_regularized,
+    kl_regularized,
+    tv_regularized,
+)
 from ..engine import StepRule
 from ._params import check_flag, check_v_min
 from ._variance import VarianceAwareMixin
@@ -63,14 +69,14 @@ class KLRule(StepRule):
     row-normalized ridge weights, capped at the step's bound; ``form="paper"`` is the literal
     ``-lam log max{w', exp(-H r_max / lam)}`` (see :func:`~r2pvi.duals.kl_regularized`)."""
 
-    def __init__(self, lam, form="normalized"):
-        self.lam, self.form = lam, form
+    def __init__(self, lam, form="normalized", moments="valid"):
+        self.lam, self.form, self.moments = lam, form, moments
 
     def __call__(self, E, v, ctx):
         ext = value_extent(v)  # once: the step's range and the dual's shift and spread
         lo, hi = _step_range(v, ctx, extent=ext)
         cap = hi if self.form == "normalized" else ctx.v_upper
-        w = kl_regularized(E, v, self.lam, cap, self.form, extent=ext)
+        w = kl_regularized(E, v, self.lam, cap, self.form, extent=ext, moments=self.moments)
         return project_onto_range(w, lo, hi)
 
 
@@ -78,8 +84,8 @@ class Chi2Rule(StepRule):
     """chi^2 (eq. parameter estimation x2): exact maximization over alpha of the centered
     moments, clipped to the range of the centered values ``[0, (H - h - 1) r_max - min V]``."""
 
-    def __init__(self, lam):
-        self.lam = lam
+    def __init__(self, lam, moments="valid"):
+        self.lam, self.moments = lam, moments
 
     def __call__(self, E, v, ctx):
         # in the values' unit (value_unit): their squares stay finite and normal; the extent
@@ -88,7 +94,8 @@ class Chi2Rule(StepRule):
         lo, hi = _step_range(u, ctx, extent=ext, unit=unit)
         top = hi - ext[0]
         lam = max(self.lam / unit, _LAM_FLOOR)
-        w = chi2_regularized(E, u, lam, (0.0, top), (0.0, top * top), extent=ext)
+        w = chi2_regularized(E, u, lam, (0.0, top), (0.0, top * top), extent=ext,
+                             moments=self.moments)
         w = project_onto_range(w, lo, hi)
         return w if unit == 1.0 else w * unit
 
@@ -220,6 +227,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         delta=0.05,
         kl_form="normalized",
         time_homogeneous=False,
+        moments="valid",
     ):
         self.divergence = divergence
         self.lam = lam
@@ -233,6 +241,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         self.delta = delta
         self.kl_form = kl_form
         self.time_homogeneous = time_homogeneous
+        self.moments = moments
 
     def _validate_common(self, dataset):
         beta = self.beta
@@ -269,8 +278,9 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         if delta >= 1.0:
             raise ValueError(f"delta must lie in (0, 1), got {delta}")
         kl_form = check_choice(self.kl_form, "kl_form", KL_FORMS)
+        moments = check_choice(self.moments, "moments", MOMENTS)
         extra = {"lam": lam, "v_min": v_min, "divergence": div,
-                 "variance_aware": variance_aware, "kl_form": kl_form}
+                 "variance_aware": variance_aware, "kl_form": kl_form, "moments": moments}
         if isinstance(self.beta, str):
             extra["beta"] = self._theory_beta(dataset, div, lam, delta, variance_aware)
         return extra
@@ -316,7 +326,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         if div == "tv":
             return TVRule(lam, v_min)
         if div == "kl":
-            return KLRule(lam, params["kl_form"])
+            return KLRule(lam, params["kl_form"], params["moments"])
         if div == "chi2":
-            return Chi2Rule(lam)
+            return Chi2Rule(lam, params["moments"])
         return FDivergenceRule(lam, div, v_min)

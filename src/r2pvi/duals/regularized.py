@@ -12,13 +12,14 @@ import numpy as np
 from scipy.special import logsumexp
 
 from ._scratch import buffer
+from ._valid_moments import RowScaled, floor_masses
 from .operator import ExpectationOperator, FactorExpectation
 from .piecewise import blockwise_max, dense_max
 from .ranges import value_extent
 
 __all__ = [
     "tv_regularized", "kl_regularized", "chi2_regularized", "row_sums",
-    "KL_FORMS",
+    "KL_FORMS", "MOMENTS",
 ]
 
 _TINY = 1e-250
@@ -54,11 +55,13 @@ def row_sums(E: ExpectationOperator) -> np.ndarray:
 
 
 KL_FORMS = ("normalized", "paper")
+MOMENTS = ("valid", "ridge")
 
 
 def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None,
                    form: str = "normalized", *,
-                   extent: tuple[float, float] | None = None) -> np.ndarray:
+                   extent: tuple[float, float] | None = None,
+                   moments: str = "valid") -> np.ndarray:
     """KL: ``-lam log E_i[exp(-V/lam)]`` (paper, Prop. KL duality and eq. (KL-estimation)).
 
     ``form="normalized"`` (default) estimates each factor as the ridge regression estimates
@@ -109,6 +112,8 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     """
     if form not in KL_FORMS:
         raise ValueError(f"form must be one of {KL_FORMS}, got {form!r}")
+    if moments not in MOMENTS:
+        raise ValueError(f"moments must be one of {MOMENTS}, got {moments!r}")
     v = np.asarray(v, dtype=float)
     shift, upper_v = value_extent(v) if extent is None else extent
     upper = upper_v if v_max is None else float(v_max)
@@ -170,7 +175,7 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
         else:
             with np.errstate(divide="ignore", invalid="ignore"):
                 log_norm = np.where(near_one, np.log1p(um / s), np.log(u) - np.log(s))
-        w = s * (shift - lam * log_norm)
+        live = None
     else:
         live = s > 0.0
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -179,15 +184,34 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
             # log(u/s) = log1p(um/s): the accurate form when u/s is not small
             near_one = u > 0.5 * safe_s
             log_norm[near_one] = np.log1p(um[near_one] / safe_s[near_one])
-            w = s * (shift - lam * log_norm)  # +inf where the moment is <= 0
-        if not live.all():  # no positive total weight: nothing to normalize, the plain estimate
-            plain = E(v) if plain is None else plain
-            w = np.where(live, w, plain)
+    if ridge and moments == "valid":
+        _floor_log_moment(E, log_norm, s, spread / lam)
+    with np.errstate(over="ignore", invalid="ignore"):
+        w = s * (shift - lam * log_norm)  # +inf where the moment is <= 0 (ridge moments)
+    if live is not None and not live.all():
+        # no positive total weight: nothing to normalize, the plain estimate
+        plain = E(v) if plain is None else plain
+        w = np.where(live, w, plain)
     if plain is not None:
         # At most the plain estimate, the lam -> inf limit (the exact dual never exceeds E V):
         # where the moment is <= 0 (+inf above) the plain estimate itself.
         np.minimum(w, plain, out=w)
     return np.minimum(w, upper, out=w)
+
+
+def _floor_log_moment(E, log_norm, s, x):
+    """Clip the normalized log moments ``log(u_i / s_i)`` of the factors with ``s_i > 0`` to
+    ``[log(f_i + (1 - f_i) e^{-x}), 0]`` in place (``x = (max V - c)/lam``; ``f_i`` of
+    :func:`~r2pvi.duals._valid_moments.floor_masses`)."""
+    live = s > 0.0
+    if not live.any():
+        return
+    np.minimum(log_norm, 0.0, out=log_norm, where=live)
+    with np.errstate(under="ignore"):
+        tail = np.exp(-x)  # the moment's least value on the points (0 when x is large)
+    f = floor_masses(E, s)
+    floor = np.log(f + (1.0 - f) * tail)
+    np.maximum(np.nan_to_num(log_norm, nan=-np.inf), floor, out=log_norm, where=live)
 
 
 def _log_moment(E, v, shift, lam, u):
@@ -220,6 +244,7 @@ def chi2_regularized(
     method: str = "auto",
     center: bool = True,
     extent: tuple[float, float] | None = None,
+    moments: str = "valid",
 ) -> np.ndarray:
     """chi^2: ``max_alpha E_i[V]_alpha + (E_i[V]_alpha)^2/(4 lam) - E_i[V^2]_alpha/(4 lam)``.
 
@@ -266,6 +291,8 @@ def chi2_regularized(
         method = "blockwise" if np.size(v) >= 512 else "dense"
     if method not in ("dense", "blockwise"):
         raise ValueError(f"method must be 'auto', 'dense' or 'blockwise', got {method!r}")
+    if moments not in MOMENTS:
+        raise ValueError(f"moments must be one of {MOMENTS}, got {moments!r}")
     v = np.asarray(v, dtype=float)
     if center and E.nonnegative and mean_clip is None and second_clip is None:
         # True-model operator: center each factor at the smallest value of its own support,
@@ -282,6 +309,8 @@ def chi2_regularized(
     c = lo_v if center else 0.0
     totals = {}
     u = v - c if center else v
+    if center and not E.nonnegative and moments == "valid":
+        return _chi2_valid(E, u, c, lam, mean_clip, second_clip, method, (0.0, hi_v - c))
     # (v - c) rounds monotonically: its extent is the extent of v, shifted and rounded
     w = _chi2_core(E, u, lam, mean_clip, second_clip, method, totals, (lo_v - c, hi_v - c))
     # At most the plain estimate E_i(v), the objective's value at mu = mu0 (the exact dual
@@ -299,6 +328,30 @@ def chi2_regularized(
     if exact:
         return _within_exact_chi2_bounds(E, v, lam, w)
     return np.minimum(w, plain)
+
+
+def _chi2_valid(E, u, c, lam, mean_clip, second_clip, method, extent):
+    """:func:`chi2_regularized` of a ridge operator with ``moments="valid"``: ``s_i`` times the
+    exact dual of the normalized weights ``M_i / s_i`` (the operator with rows scaled by
+    ``1 / s_i``; centered values ``u = v - c >= 0``), kept at most ``s_i lam N_i`` (the largest
+    dual of a distribution with mass ``f_i = 1 / (1 + N_i)`` at its least value) and at most
+    the plain estimate, which a factor without positive total weight gets; plus ``c s_i``."""
+    s = row_sums(E)
+    live = s > 0.0
+    k = np.where(live, 1.0 / np.where(live, s, 1.0), 0.0)
+    totals = {}
+    w = _chi2_core(RowScaled(E, k), u, lam, mean_clip, second_clip, method, totals, extent)
+    mean = totals.get("mean")
+    plain = E(u) if mean is None or not live.all() else mean * s  # E_i(u)
+    w = np.where(live, s * w, plain)
+    top = plain.copy()
+    dims = np.flatnonzero(live & (w > 0.0))
+    if dims.size:
+        # the cap s_i lam N_i, N_i = 1/f_i - 1 (formed for the factors above 0 only)
+        f = floor_masses(E, s[dims], dims)
+        with np.errstate(over="ignore"):
+            top[dims] = np.minimum(top[dims], s[dims] * lam * (1.0 / f - 1.0))
+    return np.minimum(w, top) + c * s
 
 
 def _chi2_core(E, u, lam, mean_clip, second_clip, method, totals=None, extent=None):
