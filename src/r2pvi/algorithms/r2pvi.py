@@ -69,7 +69,7 @@ class KLRule(StepRule):
     row-normalized ridge weights, capped at the step's bound; ``form="paper"`` is the literal
     ``-lam log max{w', exp(-H r_max / lam)}`` (see :func:`~r2pvi.duals.kl_regularized`)."""
 
-    def __init__(self, lam, form="normalized", moments="valid"):
+    def __init__(self, lam, form="normalized", moments="ridge"):
         self.lam, self.form, self.moments = lam, form, moments
 
     def __call__(self, E, v, ctx):
@@ -84,7 +84,7 @@ class Chi2Rule(StepRule):
     """chi^2 (eq. parameter estimation x2): exact maximization over alpha of the centered
     moments, clipped to the range of the centered values ``[0, (H - h - 1) r_max - min V]``."""
 
-    def __init__(self, lam, moments="valid"):
+    def __init__(self, lam, moments="ridge"):
         self.lam, self.moments = lam, moments
 
     def __call__(self, E, v, ctx):

@@ -49,15 +49,29 @@ def effective_counts(E: ExpectationOperator, s: np.ndarray, dims=None) -> np.nda
     """
     dims = np.arange(E.n_dims) if dims is None else np.asarray(dims, dtype=np.intp)
     s = np.asarray(s, dtype=float)
-    inverse_diagonal = getattr(E, "inverse_diagonal", None)
-    if inverse_diagonal is not None:
-        scale = np.asarray(inverse_diagonal(), dtype=float)[dims]
-    else:
-        scale = _squared_weight_sums(E, dims)
+    scale = _inverse_diagonal(E)
+    scale = _squared_weight_sums(E, dims) if scale is None else scale[dims]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         count = np.where((s > 0.0) & (scale > 0.0), s * s / np.where(scale > 0, scale, 1.0),
                          0.0)
     return count
+
+
+def _inverse_diagonal(E):
+    """``diag(Lambda^{-1})`` of a regression operator, None for other operators. (A primal
+    factor built from a bare Cholesky factor has no gamma, which only the unused features of
+    sparse rows need: the column norms of ``L^{-1}`` then.)"""
+    inverse_diagonal = getattr(E, "inverse_diagonal", None)
+    if inverse_diagonal is None:
+        return None
+    try:
+        return np.asarray(inverse_diagonal(), dtype=float)
+    except TypeError:
+        factor = getattr(E, "factor", None)
+        if factor is None or factor.form != "primal" or factor.cols is not None:
+            raise
+        linv = factor.linv
+        return np.einsum("ij,ij->j", linv, linv)
 
 
 def _squared_weight_sums(E: ExpectationOperator, dims: np.ndarray) -> np.ndarray:

@@ -137,13 +137,15 @@ def dense_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, 
 
 
 def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=None, extra=(),
-                  totals: dict | None = None, group: int | None = None):
+                  totals: dict | None = None, group: int | None = None, ceiling=None):
     """The exact chi^2 maximum by branch and bound over blocks of breakpoints (module doc):
     blocks of ``16 group`` breakpoints first (``GROUP`` by default), then the blocks of 16
     inside those whose bound beats the best value, then the exact segments.
 
     ``totals``, a dict, receives ``"mass"`` and ``"mean"``: ``E_i(1)`` and ``E_i(v)`` from the
-    block sums (no further pass over the data)."""
+    block sums (no further pass over the data). ``ceiling (d,)``, optional: the result is
+    ``min(maximum, ceiling)``, and a factor whose value at the block starts already reaches
+    its ceiling is not searched further."""
     scan = BlockScan(E, v, extra, group=GROUP if group is None else group)
     scan.report(totals)
     shape = scan.e1_start.shape
@@ -151,6 +153,16 @@ def blockwise_max(E: ExpectationOperator, v, lam, mean_clip=None, second_clip=No
                           out=buffer("scan.g", shape)).max(axis=1)
     top = chi2_objective(scan.e1_top, scan.e2_top, lam, mean_clip, second_clip)
     best = np.maximum(best, top)
+    if ceiling is not None:
+        done = best >= ceiling
+        best[done] = np.inf  # no block beats it: not refined
+        return np.minimum(_blockwise_search(scan, best, lam, mean_clip, second_clip), ceiling)
+    return _blockwise_search(scan, best, lam, mean_clip, second_clip)
+
+
+def _blockwise_search(scan, best, lam, mean_clip, second_clip):
+    """The branch and bound of :func:`blockwise_max` from the best values ``best`` found at
+    the block starts (raised in place)."""
     upper = _chi2_block_bounds(scan, lam, mean_clip, second_clip)
     rows, blocks = np.nonzero(upper > best[:, None])
     prefix = None

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from ._scratch import buffer
-from ._valid_moments import RowScaled, floor_masses
+from ._valid_moments import RowScaled, effective_counts, floor_masses
 from .operator import ExpectationOperator, FactorExpectation
 from .piecewise import blockwise_max, dense_max
 from .ranges import value_extent
@@ -61,7 +61,7 @@ MOMENTS = ("valid", "ridge")
 def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None,
                    form: str = "normalized", *,
                    extent: tuple[float, float] | None = None,
-                   moments: str = "valid") -> np.ndarray:
+                   moments: str = "ridge") -> np.ndarray:
     """KL: ``-lam log E_i[exp(-V/lam)]`` (paper, Prop. KL duality and eq. (KL-estimation)).
 
     ``form="normalized"`` (default) estimates each factor as the ridge regression estimates
@@ -201,16 +201,14 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
 
 def _floor_log_moment(E, log_norm, s, x):
     """Clip the normalized log moments ``log(u_i / s_i)`` of the factors with ``s_i > 0`` to
-    ``[log(f_i + (1 - f_i) e^{-x}), 0]`` in place (``x = (max V - c)/lam``; ``f_i`` of
-    :func:`~r2pvi.duals._valid_moments.floor_masses`)."""
+    ``[max(log f_i, -x), 0]`` in place: ``e^{-x}`` (``x = (max V - c)/lam``) and 1 are the
+    least and largest moments of a distribution on the values, ``f_i`` the floor of
+    :func:`~r2pvi.duals._valid_moments.floor_masses`."""
     live = s > 0.0
     if not live.any():
         return
     np.minimum(log_norm, 0.0, out=log_norm, where=live)
-    with np.errstate(under="ignore"):
-        tail = np.exp(-x)  # the moment's least value on the points (0 when x is large)
-    f = floor_masses(E, s)
-    floor = np.log(f + (1.0 - f) * tail)
+    floor = np.maximum(np.log(floor_masses(E, s)), -x)
     np.maximum(np.nan_to_num(log_norm, nan=-np.inf), floor, out=log_norm, where=live)
 
 
@@ -244,7 +242,7 @@ def chi2_regularized(
     method: str = "auto",
     center: bool = True,
     extent: tuple[float, float] | None = None,
-    moments: str = "valid",
+    moments: str = "ridge",
 ) -> np.ndarray:
     """chi^2: ``max_alpha E_i[V]_alpha + (E_i[V]_alpha)^2/(4 lam) - E_i[V^2]_alpha/(4 lam)``.
 
@@ -334,30 +332,28 @@ def _chi2_valid(E, u, c, lam, mean_clip, second_clip, method, extent):
     """:func:`chi2_regularized` of a ridge operator with ``moments="valid"``: ``s_i`` times the
     exact dual of the normalized weights ``M_i / s_i`` (the operator with rows scaled by
     ``1 / s_i``; centered values ``u = v - c >= 0``), kept at most ``s_i lam N_i`` (the largest
-    dual of a distribution with mass ``f_i = 1 / (1 + N_i)`` at its least value) and at most
-    the plain estimate, which a factor without positive total weight gets; plus ``c s_i``."""
+    dual of a distribution with mass ``f_i = 1 / (1 + N_i)`` at its least value; factors that
+    reach it are not searched further) and at most the plain estimate, which a factor without
+    positive total weight gets; plus ``c s_i``."""
     s = row_sums(E)
     live = s > 0.0
     k = np.where(live, 1.0 / np.where(live, s, 1.0), 0.0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        ceiling = np.where(live, lam * effective_counts(E, s), np.inf)
     totals = {}
-    w = _chi2_core(RowScaled(E, k), u, lam, mean_clip, second_clip, method, totals, extent)
+    w = _chi2_core(RowScaled(E, k), u, lam, mean_clip, second_clip, method, totals, extent,
+                   ceiling)
     mean = totals.get("mean")
     plain = E(u) if mean is None or not live.all() else mean * s  # E_i(u)
     w = np.where(live, s * w, plain)
-    top = plain.copy()
-    dims = np.flatnonzero(live & (w > 0.0))
-    if dims.size:
-        # the cap s_i lam N_i, N_i = 1/f_i - 1 (formed for the factors above 0 only)
-        f = floor_masses(E, s[dims], dims)
-        with np.errstate(over="ignore"):
-            top[dims] = np.minimum(top[dims], s[dims] * lam * (1.0 / f - 1.0))
-    return np.minimum(w, top) + c * s
+    return np.minimum(w, plain) + c * s
 
 
-def _chi2_core(E, u, lam, mean_clip, second_clip, method, totals=None, extent=None):
+def _chi2_core(E, u, lam, mean_clip, second_clip, method, totals=None, extent=None,
+               ceiling=None):
     """The exact maximum over alpha for values ``u`` (see :func:`chi2_regularized`);
     ``totals`` as in :func:`~r2pvi.duals.piecewise.blockwise_max` (blockwise only);
-    ``extent``: ``(min u, max u)`` if known."""
+    ``extent``: ``(min u, max u)`` if known; ``ceiling (d,)``: the result is at most it."""
     lo_v, hi_v = value_extent(u) if extent is None else extent
     # E([V]^2_alpha) = C + B alpha^2 is monotone on a segment that does not contain alpha = 0.
     extra = (0.0,) if lo_v < 0.0 < hi_v else ()
@@ -365,8 +361,10 @@ def _chi2_core(E, u, lam, mean_clip, second_clip, method, totals=None, extent=No
     # exact bounds (or the rule's range) take over.
     with np.errstate(over="ignore", invalid="ignore"):
         if method == "dense":
-            return dense_max(E, u, lam, mean_clip, second_clip, extra)
-        return blockwise_max(E, u, lam, mean_clip, second_clip, extra, totals)
+            w = dense_max(E, u, lam, mean_clip, second_clip, extra)
+            return w if ceiling is None else np.minimum(w, ceiling)
+        return blockwise_max(E, u, lam, mean_clip, second_clip, extra, totals,
+                             ceiling=ceiling)
 
 
 def _within_exact_chi2_bounds(E, v, lam, w):
