@@ -67,7 +67,8 @@ class TVRule(StepRule):
 class KLRule(StepRule):
     """KL (eq. KL-estimation): ``form="normalized"`` is ``s_i`` times the dual of the
     row-normalized ridge weights, capped at the step's bound; ``form="paper"`` is the literal
-    ``-lam log max{w', exp(-H r_max / lam)}`` (see :func:`~r2pvi.duals.kl_regularized`)."""
+    ``-lam log max{w', exp(-H r_max / lam)}``; ``moments`` as in
+    :func:`~r2pvi.duals.kl_regularized` (R2PVI passes "valid")."""
 
     def __init__(self, lam, form="normalized", moments="ridge"):
         self.lam, self.form, self.moments = lam, form, moments
@@ -82,7 +83,8 @@ class KLRule(StepRule):
 
 class Chi2Rule(StepRule):
     """chi^2 (eq. parameter estimation x2): exact maximization over alpha of the centered
-    moments, clipped to the range of the centered values ``[0, (H - h - 1) r_max - min V]``."""
+    moments, clipped to the range of the centered values ``[0, (H - h - 1) r_max - min V]``;
+    ``moments`` as in :func:`~r2pvi.duals.chi2_regularized` (R2PVI passes "valid")."""
 
     def __init__(self, lam, moments="ridge"):
         self.lam, self.moments = lam, moments
@@ -185,6 +187,18 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         Gram matrix factored once (per-step work: next-state values and regressions). Valid
         only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
         e.g. a Gymnasium environment); False is the paper's per-step estimator.
+    moments : {"valid", "ridge"}, default "valid"
+        KL (``kl_form="normalized"``) and chi^2 only: how a factor's moments are estimated
+        from its signed ridge weights
+        ``M_i`` (row sum ``s_i``). "valid": the normalized weights ``M_i / s_i`` are taken to
+        hold at least ``f_i = 1 / (1 + N_i)`` of their mass at the least value ``c``, with
+        ``N_i = s_i^2 / [Lambda^-1]_ii`` the factor's effective count: KL's normalized moment
+        is kept in ``[max(f_i, e^{-(max V - c)/lam}), 1]`` (so ``w_i <= s_i (c + lam log(1 +
+        N_i))``), chi^2 is ``s_i`` times the dual of ``M_i / s_i``, at most ``s_i (c + lam
+        N_i)``. "ridge": the moments as regressed (a KL moment <= 0 gives the plain estimate
+        ``E_i V``, chi^2 uses ``E_i`` unnormalized), the estimator before this option.
+        Exact distributions are unchanged either way. See the user guide's page on rare
+        events.
 
     Attributes
     ----------

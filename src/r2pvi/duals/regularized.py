@@ -88,6 +88,15 @@ def kl_regularized(E: ExpectationOperator, v: np.ndarray, lam: float, v_max=None
     capped (their dual is at most ``E V``). ``extent``: ``(min v, max v)`` when already known
     (:func:`~r2pvi.duals.ranges.value_extent`), to save two passes over ``v``.
 
+    ``moments="valid"`` (R2PVI's default; normalized form, ridge operators): the normalized
+    moment ``u_i / s_i`` is clipped to ``[max(f_i, e^{-(max v - c)/lam}), 1]``, the range of
+    the moment of a distribution on the values with at least ``f_i = 1 / (1 + N_i)`` of its
+    mass at ``c`` (``N_i = s_i^2 / [Lambda^-1]_ii``, the factor's effective count;
+    :mod:`r2pvi.duals._valid_moments`): the paper's floor ``exp(-H/lam)`` raised to what the
+    data resolve, so ``s_i c <= w_i <= s_i (c + lam log(1 + N_i))`` (and at most ``E_i(v)``)
+    where the ridge moment is <= 0 or tiny. ``"ridge"`` (default here): the moment as regressed.
+    Non-negative operators are unchanged either way.
+
     Monotonicity in ``lam``: for a distribution, and for a ridge factor whose weights are all
     non-negative (its normalized weights are a distribution), the estimate is the exact dual
     (times ``s_i``), non-decreasing in ``lam``. With signed weights it need not be: the
@@ -267,6 +276,14 @@ def chi2_regularized(
     to 1e-300) that interval is the answer. ``center=False`` is the literal computation.
     ``extent``: ``(min v, max v)`` when the caller has them
     (:func:`~r2pvi.duals.ranges.value_extent`), to save passes over ``v``.
+
+    ``moments="valid"`` (R2PVI's default; ridge operators, ``center=True``): ``s_i`` times the
+    exact maximum for the normalized weights ``M_i / s_i`` (the ridge form uses ``M_i``
+    itself, whose variance ``E_i(V^2) - E_i(V)^2`` is off by ``(s_i - s_i^2) E(V)^2`` when
+    ``s_i != 1``), at most ``s_i (c + lam N_i)``, the largest dual of a distribution with mass
+    ``1 / (1 + N_i)`` at ``c`` (``N_i`` as in :func:`kl_regularized`), and at most ``E_i(v)``;
+    a factor whose value at the block starts reaches that cap is not searched further.
+    ``"ridge"`` (default here): the moments of ``M_i``. Non-negative operators are unchanged.
 
     The objective is piecewise quadratic in ``alpha``; every breakpoint (sorted value), every
     point where a clip becomes active and the stationary point of every piece are candidates
