@@ -189,16 +189,15 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         e.g. a Gymnasium environment); False is the paper's per-step estimator.
     moments : {"valid", "ridge"}, default "valid"
         KL (``kl_form="normalized"``) and chi^2 only: how a factor's moments are estimated
-        from its signed ridge weights
-        ``M_i`` (row sum ``s_i``). "valid": the normalized weights ``M_i / s_i`` are taken to
-        hold at least ``f_i = 1 / (1 + N_i)`` of their mass at the least value ``c``, with
-        ``N_i = s_i^2 / [Lambda^-1]_ii`` the factor's effective count: KL's normalized moment
-        is kept in ``[max(f_i, e^{-(max V - c)/lam}), 1]`` (so ``w_i <= s_i (c + lam log(1 +
-        N_i))``), chi^2 is ``s_i`` times the dual of ``M_i / s_i``, at most ``s_i (c + lam
-        N_i)``. "ridge": the moments as regressed (a KL moment <= 0 gives the plain estimate
-        ``E_i V``, chi^2 uses ``E_i`` unnormalized), the estimator before this option.
-        Exact distributions are unchanged either way. See the user guide's page on rare
-        events.
+        from its signed ridge weights ``M_i`` (row sum ``s_i``). "valid": the normalized
+        weights ``M_i / s_i`` are taken to hold at least ``f_i = 1 / (1 + N_i)`` of their
+        mass at the least value ``c``, with ``N_i = s_i^2 / [Lambda^-1]_ii`` the factor's
+        effective count: KL's normalized moment is kept in ``[max(f_i, e^{-(max V -
+        c)/lam}), 1]`` (so ``w_i <= s_i (c + lam log(1 + N_i))``), chi^2 is ``s_i`` times the
+        dual of ``M_i / s_i``, at most ``s_i (c + lam N_i)``. "ridge": the moments as
+        regressed (a KL moment <= 0 gives the plain estimate ``E_i V``; chi^2 uses ``M_i``
+        unnormalized), the estimator before this option. Exact distributions are unchanged
+        either way. See the user guide's page on rare events.
 
     Attributes
     ----------
