@@ -1,28 +1,26 @@
 """Valid moment estimates on learned data: every factor keeps a mass of order ``1/N_i`` at the
 least value (``moments="valid"`` of :func:`~r2pvi.duals.kl_regularized` and
-:func:`~r2pvi.duals.chi2_regularized`).
+:func:`~r2pvi.duals.chi2_regularized`; docs/user_guide/rare-events.md).
 
 A ridge factor's weights ``M_i`` are signed. The KL moment ``E_i[exp(-(V - c)/lam)]`` and the
 chi^2 variance of ``[V]_alpha`` are then estimates that can leave their range (a moment <= 0, a
 variance < 0), most of all where the values that matter are rare (a failure state reached by
-a few transitions): the moment is then essentially the ridge estimate of a small probability,
-whose error is of the order of the weight of one transition. The rule here is the paper's own
-floor ``max{w', exp(-H/lam)}`` raised to what the data can resolve:
+a few transitions): the moment is then essentially the ridge estimate of a small probability.
+The rule is the paper's own floor ``max{w', exp(-H/lam)}`` raised to what the data resolve:
 
-- ``N_i = s_i^2 / sum_j M_ij^2``, the effective count (Kish) of factor i's weights
-  (``s_i = sum_j M_ij``): ``N`` for ``N`` equal weights, at most the number of points, ``0``
-  for a factor without weight; invariant to the scale of the features;
-- ``f_i = 1 / (1 + N_i)``, the floor: the factor's normalized distribution ``M_i / s_i`` is
-  taken to hold at least ``f_i`` of its mass at the least value ``c = min V``.
+- ``N_i``, the factor's effective count (:func:`effective_counts`): ``s_i^2 /
+  [Lambda^-1]_ii`` for a regression (``s_i = sum_j M_ij``), about ``n_i`` for one-hot
+  features seen ``n_i`` times, ``0`` for a factor without positive weight;
+- ``f_i = 1 / (1 + N_i)``: the factor's normalized weights ``M_i / s_i`` are taken to hold at
+  least ``f_i`` of their mass at the least value ``c = min V``.
 
-KL clips the normalized moment to ``[f_i + (1 - f_i) e^{-(max V - c)/lam}, 1]``, the range of
-the moment of a distribution with that mass at ``c``; chi^2 uses the mixture ``f_i delta_c +
-(1 - f_i) M_i / s_i``. On exact distributions (non-negative operators) nothing changes.
+KL clips the normalized moment to ``[max(f_i, e^{-(max V - c)/lam}), 1]``; chi^2 is ``s_i``
+times the dual of ``M_i / s_i`` (:class:`RowScaled`), at most ``s_i (c + lam N_i)``, the
+largest dual of a distribution with mass ``f_i`` at ``c``. Exact distributions (non-negative
+operators) are unchanged.
 """
 
 from __future__ import annotations
-
-import weakref
 
 import numpy as np
 
@@ -30,9 +28,6 @@ from .operator import ExpectationOperator
 
 __all__ = ["effective_counts", "floor_masses", "RowScaled"]
 
-# Gram matrices psi^T psi of operators seen through weight_factors, per operator object (a
-# pooled fit asks for the same operator at every step).
-_GRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 # Rows per chunk when the weights are read row by row.
 _ROW_CHUNK = 16
 
@@ -75,24 +70,8 @@ def _inverse_diagonal(E):
 
 
 def _squared_weight_sums(E: ExpectationOperator, dims: np.ndarray) -> np.ndarray:
-    """``sum_j M_ij^2`` for the factors ``dims``: ``r_i^T (psi^T psi) r_i`` when ``M = R
-    psi^T`` (the ``p x p`` Gram matrix formed once per operator), else from the rows, a few
-    at a time."""
-    if dims.size == 0:
-        return np.zeros(0)
-    factors = E.weight_factors()
-    if factors is not None:
-        psi, r = factors
-        gram = _GRAMS.get(E)
-        if gram is None:
-            gram = np.asarray(psi.T @ psi, dtype=float)
-            try:
-                _GRAMS[E] = gram
-            except TypeError:  # not weak-referenceable: no cache
-                pass
-        rd = r[dims]
-        return np.maximum(np.einsum("ij,ij->i", rd @ gram, rd), 0.0)
-    out = np.empty(dims.size)
+    """``sum_j M_ij^2`` for the factors ``dims``, from the explicit rows, a few at a time."""
+    out = np.zeros(dims.size)
     for k in range(0, dims.size, _ROW_CHUNK):
         rows = E.rows(dims[k:k + _ROW_CHUNK])
         out[k:k + _ROW_CHUNK] = np.einsum("ij,ij->i", rows, rows)
