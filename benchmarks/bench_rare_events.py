@@ -40,7 +40,7 @@ SWEEPS = ("force_mag", "gravity", "length")
 
 
 def dataset(n_episodes: int, seed: int):
-    """``(data, feature map, failing transitions)`` of one behaviour dataset."""
+    """``(data, feature map, episodes that end in a failure)`` of one behaviour dataset."""
     behaviour = EpsilonGreedy(CartPoleLQR(), 0.3, 2)
     eps = collect_episodes(NoisyCartPoleEnv(), behaviour, n_episodes, seed=seed, n_envs=50)
     fmap = cross_actions(NormalizedRBF(n_centers=3).fit(episode_observations(eps)), 2)
@@ -71,7 +71,7 @@ def main():
     with threadpool_limits(limits=1, user_api="blas"):
         for seed in args.seeds:
             data, fmap, failures = dataset(args.episodes, seed)
-            print(f"\ndataset seed {seed}: {data}, {failures} failing transitions")
+            print(f"\ndataset seed {seed}: {data}, {failures} episodes end in a failure")
             print(header)
             rows = [("TV lam 0.1", R2PVI("tv", lam=0.1, **common)),
                     ("TV lam 1e-6 (coverage)", R2PVI("tv", lam=1e-6, **common))]
