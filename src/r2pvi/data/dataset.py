@@ -346,7 +346,8 @@ class OfflineDataset:
 
 
 def dataset_from_episodes(episodes, feature_map, n_actions: int, horizon: int | None = None, *,
-                          reward_offset=None, check_simplex: bool = True) -> OfflineDataset:
+                          reward_offset=None, check_simplex: bool = True,
+                          dtype=None) -> OfflineDataset:
     """Build an :class:`~r2pvi.OfflineDataset` from episodes of any length.
 
     The same as :meth:`r2pvi.OfflineDataset.from_episodes` (the public entry point); see
@@ -354,4 +355,5 @@ def dataset_from_episodes(episodes, feature_map, n_actions: int, horizon: int | 
     offsets).
     """
     return OfflineDataset.from_episodes(episodes, feature_map, n_actions, horizon,
-                                        reward_offset=reward_offset, check_simplex=check_simplex)
+                                        reward_offset=reward_offset, check_simplex=check_simplex,
+                                        dtype=dtype)

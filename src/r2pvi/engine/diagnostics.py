@@ -69,6 +69,9 @@ class FitDiagnostics:
         fit); None when the known values are not in memory.
     has_absorbing : bool
         Whether the dataset gives any known next-state value.
+    stopped_at : int or None
+        A pooled fit that reached a fixed point: the step from which the weights stopped
+        changing (every earlier step holds that step's weights); None otherwise.
     """
 
     horizon: int
@@ -80,6 +83,7 @@ class FitDiagnostics:
     constant_fit: np.ndarray | None
     absorbing: np.ndarray | None
     has_absorbing: bool
+    stopped_at: int | None = None
 
     @property
     def implicit_discount(self) -> float | None:
@@ -235,6 +239,9 @@ def _gram_diagonal_and_sums(E, factor, weights):
     operator's state is not changed."""
     if factor is None:  # chunked: the primal factor and the sums that rode along with it
         return _chunked_diagonal_and_sums(E, weights)
+    own = getattr(E, "gram_diagonal_and_sums", None)
+    if own is not None:  # rows the operator never forms (state features)
+        return own()
     phi = E.phi
     w = np.ones(phi.shape[0]) if weights is None else np.asarray(weights, dtype=float)
     if sp.issparse(phi):

@@ -165,6 +165,9 @@ class StepSource:
         views = self.pooled_views(P)
         if views is not None:
             return views
+        crossed = self.pooled_crossed(P)
+        if crossed is not None:
+            return crossed
         steps = [self.step(h) for h in range(P)]
         if any(s[3] is not None for s in steps):
             A = self.n_actions
@@ -192,6 +195,19 @@ class StepSource:
             return None
         rewards = np.asarray(self.rewards.lazy(), dtype=float).reshape(H * K)[:n]
         return phi.reshape(H * K, d)[:n], rewards, nxt[0], nxt[1]
+
+    def pooled_crossed(self, P: int):
+        """:meth:`pooled` of state features stored once per observation
+        (:mod:`~r2pvi.data.storage.crossed`): the taken-action and next-state rows as
+        :class:`~r2pvi.data.storage.crossed.CrossedRows` (views), never formed; None for the
+        other kinds."""
+        rows = getattr(self.phi, "pooled_rows", None)
+        nxt = getattr(self.next, "pooled_rows", None)
+        if rows is None or nxt is None:
+            return None
+        n = P * self.n_trajectories
+        rewards = np.asarray(self.rewards.lazy(), dtype=float).reshape(-1)[:n]
+        return (rows(P), rewards) + nxt(n)
 
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
