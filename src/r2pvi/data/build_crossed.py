@@ -100,7 +100,7 @@ def crossed_episodes(cls, fmap, eps, lengths, h_idx, k_idx, acts, rewards, absor
         CrossedNext(psi, A, _st.ArrayField(known) if any_known else None, nonneg_next),
         extras, nonneg_phi, unit_rows=False,
         reward_range=(float(rew.min()), float(rew.max())),
-        checked=("phi", "rewards", "next"))
+        checked=("phi", "rewards", "next"), stationary=True, reward_offset=offset)
     return cls(_source=source)
 
 

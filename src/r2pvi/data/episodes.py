@@ -195,6 +195,9 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
     ``(1 + A) A m``, and pooled fits (``time_homogeneous=True``) that read ``psi`` twice a
     step. The numbers are those of the dense rows.
 
+    The dataset is :attr:`~r2pvi.OfflineDataset.stationary`: the estimators' default
+    ``time_homogeneous="auto"`` pools its steps.
+
     A terminated episode continues in an absorbing state of known value 0; a truncated
     one ends without a terminal value; steps after an episode's end carry zero features
     (no data). Details: :mod:`r2pvi.episodes`.
@@ -270,8 +273,10 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
             return ds
     phi_flat = fmap(cur, acts)
     if sp.issparse(phi_flat):  # tile coding, aggregation: sparse rows all the way
-        return sparse_episodes(cls, phi_flat, fmap, nxt, rews + offset, h_idx, k_idx, absorbing,
-                               offset, K, H, A, check_simplex)
+        ds = sparse_episodes(cls, phi_flat, fmap, nxt, rews + offset, h_idx, k_idx, absorbing,
+                             offset, K, H, A, check_simplex)
+        ds._source.stationary, ds._source.reward_offset = True, offset
+        return ds
     phi_flat = _dense(phi_flat, N, "feature_map(observations, actions)")
     d = phi_flat.shape[1]
     ok = not check_simplex or check_simplex_features(  # real rows only: padding is zero
@@ -308,11 +313,14 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
         next_phi[h, pad] = next_phi[h, src]
         next_values[h, pad] = next_values[h, src]
         next_states[pad, h] = next_states[src, h]
-    return cls.from_features(
+    ds = cls.from_features(
         phi.transpose(1, 0, 2), rewards.T, next_phi.transpose(1, 0, 2, 3),
         next_values.transpose(1, 0, 2), check_simplex=False, dtype=dtype,
         states=states, actions=actions, next_states=next_states,
     )
+    # draws of one environment: the pooled form by default
+    ds._source.stationary, ds._source.reward_offset = True, offset
+    return ds
 
 
 def _reward_offset(reward_offset, rewards: np.ndarray) -> float:

@@ -78,6 +78,10 @@ def _save_npz(self, path, overwrite: bool = False):
             raise TypeError(f"cannot save {key!r}: object arrays are not supported")
         arrays["extra_" + key] = value
     meta = {"reward_noise": self.reward_noise} if self.reward_noise else {}
+    if self.stationary:
+        meta["stationary"] = True
+    if self._source.reward_offset:
+        meta["reward_offset"] = self._source.reward_offset
     return save_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION, arrays, meta,
                     overwrite=overwrite)
 
@@ -108,7 +112,7 @@ def load(cls, path):
         raise file_error(path, unknown[0], "is not a field of an OfflineDataset file")
     extras = {k[len("extra_") :]: v for k, v in arrays.items() if k.startswith("extra_")}
     try:  # the loaded arrays go through the same checks as from_features
-        return cls.from_features(
+        ds = cls.from_features(
             arrays["phi"],
             arrays["rewards"],
             arrays["next_phi"],
@@ -119,3 +123,8 @@ def load(cls, path):
         )
     except (TypeError, ValueError) as exc:
         raise file_error(path, None, f"holds invalid data: {exc}") from None
+    ds._source.stationary = header.get("stationary", False) is True
+    offset = header.get("reward_offset", 0.0)
+    if isinstance(offset, int | float) and not isinstance(offset, bool) and offset >= 0:
+        ds._source.reward_offset = float(offset)
+    return ds

@@ -159,7 +159,8 @@ def backward_induction(
     E = None
     # pooled: V at every next state, with the penalty formed once per factor
     pooled_values = None if pooled is None else PooledNextValues(
-        pooled[2], pooled[3], "next" not in checked)
+        pooled[2], pooled[3], "next" not in checked, source.reward_offset, H,
+        dataset.n_trajectories)
     new_factor = True
     stopped_at = None
     # Per-step fits of dense features read a step's features by chunk (ChunkedRidgeExpectation);
@@ -220,7 +221,8 @@ def backward_induction(
                                                       None if ellip is None else ellip[h + 1])
                         new_factor = sw is not None  # the next step's factor, if refactored
                         try:
-                            v_next, clipped = pooled_values(weights[h + 1], (H - h - 1) * r_max)
+                            v_next, clipped = pooled_values(weights[h + 1], (H - h - 1) * r_max,
+                                                            step=h)
                         except NonFiniteRows as exc:  # pooled rows: step-major
                             step, k = divmod(exc.index[0], dataset.n_trajectories)
                             raise source.next.nonfinite(step, 0, NonFiniteRows(
@@ -255,7 +257,8 @@ def backward_induction(
                 elif h == 0:  # the one pooled regression, after its last use by a rule
                     recorder.record(0, E, factor, sw, next_known)
                 elif (early_stop and sw is None and reward_weights is None and h < H - 1
-                      and not clipped and _same_params(rule, h)
+                      and not clipped and not pooled_values.step_dependent
+                      and _same_params(rule, h)
                       and converged(weights[h], weights[h + 1])):
                     # a fixed point: steps 0 .. h-1 would see the values of this one
                     weights[:h], thetas[:h], inv_diags[:h] = weights[h], theta, inv_diag

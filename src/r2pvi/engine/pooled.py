@@ -125,21 +125,38 @@ def next_penalty(feats, kind: str, beta: float, inv_diag, ellip) -> np.ndarray |
 class PooledNextValues:
     """``V_{h+1}`` at the pooled next states, step after step: the rows, their known values
     and the penalty (formed once per factor: :func:`next_penalty`) are kept; a step costs one
-    product ``phi(s', a)^T w`` (with state features: ``psi(s') W``)."""
+    product ``phi(s', a)^T w`` (with state features: ``psi(s') W``).
 
-    def __init__(self, feats, known, check: bool):
+    Known values of episodes whose rewards were shifted by ``c`` (``reward_offset``) hold
+    ``(H - h - 1) c`` for their row's step ``h``; at the pooled fit's step ``h'`` they are
+    ``(H - h' - 1) c`` (the value of the shifted rewards still to come), so that the shift
+    adds exactly ``(H - h') c`` to ``Q_h'`` as in a per-step fit. ``n_trajectories`` (K)
+    gives a row's step (rows are step-major)."""
+
+    def __init__(self, feats, known, check: bool, offset: float = 0.0, horizon: int = 1,
+                 n_trajectories: int = 1):
         self.feats, self.check, self.known = feats, bool(check), known
         self.pen = None
         self.rows = None
+        self.offset, self.horizon = float(offset), int(horizon)
         if known is not None:  # the rows holding a known value: few (absorbing states)
             self.rows = np.flatnonzero(~np.isnan(known).all(axis=1))
             self.row_known = known[self.rows]
+            if self.offset:  # without the shift still to come after the row's own step
+                steps = self.rows // int(n_trajectories)
+                self.row_known = self.row_known - ((self.horizon - steps - 1)
+                                                   * self.offset)[:, None]
+
+    @property
+    def step_dependent(self) -> bool:
+        """Whether known values change with the fit's step (shifted rewards)."""
+        return bool(self.offset) and self.rows is not None and self.rows.size > 0
 
     def set_penalty(self, kind: str, beta: float, inv_diag, ellip) -> None:
         """Form the penalty of a (new) factor at every next state and action."""
         self.pen = next_penalty(self.feats, kind, beta, inv_diag, ellip)
 
-    def __call__(self, weights_h: np.ndarray, upper: float):
+    def __call__(self, weights_h: np.ndarray, upper: float, step: int = 0):
         """``(V (n,), clipped)``: ``V = max_a clip(phi(s', a)^T w - pen, 0, upper)``, known
         values where given; ``clipped`` says whether some value reached ``upper`` before the
         clip (then a larger bound would change it: no fixed point; rows with known values
@@ -159,7 +176,10 @@ class PooledNextValues:
         np.clip(v, 0.0, upper, out=v)  # max_a clip(q_a) = clip(max_a q_a)
         if self.rows is not None and self.rows.size:
             qk = np.clip(q[self.rows], 0.0, upper)
-            v[self.rows] = np.where(np.isnan(self.row_known), qk, self.row_known).max(axis=1)
+            known = self.row_known
+            if self.offset:
+                known = known + (self.horizon - step - 1) * self.offset
+            v[self.rows] = np.where(np.isnan(known), qk, known).max(axis=1)
         return v, clipped
 
 

@@ -128,7 +128,8 @@ def open_directory(path, feature_map=None) -> StepSource:
                       sums=sums, reward_range=manifest_range(mf, "reward_range"),
                       reward_noise=_manifest_noise(path, mf),
                       row_sums=manifest_range(mf, "phi_row_sums"),
-                      range_recorded=True,
+                      range_recorded=True, stationary=_manifest_flag(path, mf, "stationary"),
+                      reward_offset=_manifest_offset(path, mf),
                       stored_files={n: path / files[n] for n in ("gram", "phi_sums")
                                     if n in files})
 
@@ -142,6 +143,24 @@ def _probe_map(path: Path, read) -> None:
             raise
         raise file_error(path / MANIFEST, "n_features", f"disagrees with the feature map: {exc}; "
                          "pass the feature map the dataset was built with") from None
+
+
+def _manifest_flag(path: Path, mf: dict, name: str) -> bool:
+    """A yes/no fact of the manifest (False when not recorded)."""
+    value = mf.get(name, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"{path}: the manifest's {name} must be true or false, got {value!r}; "
+                         "the dataset is damaged")
+    return value
+
+
+def _manifest_offset(path: Path, mf: dict) -> float:
+    """The reward shift of episodes (``reward_offset``; 0 when not recorded)."""
+    c = mf.get("reward_offset", 0.0)
+    if isinstance(c, bool) or not isinstance(c, int | float) or not np.isfinite(c) or c < 0:
+        raise ValueError(f"{path}: the manifest's reward_offset must be a number >= 0, got "
+                         f"{c!r}; the dataset is damaged")
+    return float(c)
 
 
 def _manifest_noise(path: Path, mf: dict) -> float:
@@ -281,6 +300,10 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
             meta["phi_row_sums"] = [float(row_sums[0]), float(row_sums[1])]
         if source.reward_noise:
             meta["reward_noise"] = source.reward_noise
+        if source.stationary:
+            meta["stationary"] = True
+        if source.reward_offset:
+            meta["reward_offset"] = source.reward_offset
         if isinstance(nxt, MapNext):
             kind = "map"
             put("next_observations", nxt.observations, nxt.observations.dtype)

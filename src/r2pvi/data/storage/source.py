@@ -42,8 +42,15 @@ class StepSource:
                  nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
                  sums=None, unit_rows: bool = False, reward_range=None,
                  reward_noise: float = 0.0, row_sums=None, checked=(), stored_files=None,
-                 range_recorded: bool = False):
+                 range_recorded: bool = False, stationary: bool = False,
+                 reward_offset: float = 0.0):
         self.phi, self.rewards, self.next = phi, rewards, nxt
+        # The steps are draws of one stationary environment (OfflineDataset.stationary).
+        self.stationary = bool(stationary)
+        # The shift c added to every reward (episodes with reward_offset): a known next value
+        # (an absorbing state's) holds (H - h - 1) c for the step h of its row. A pooled fit's
+        # step h' uses (H - h' - 1) c there instead (see engine.pooled).
+        self.reward_offset = float(reward_offset)
         self.checked = frozenset(checked)
         if not self.checked <= FIELDS:
             raise ValueError(f"checked must name fields among {sorted(FIELDS)}, got "
@@ -258,7 +265,8 @@ class StepSource:
         return StepSource(phi, rewards, self.next.take(idx), extras, self.nonnegative_phi,
                           self.chunk, unit_rows=self.unit_rows, reward_noise=self.reward_noise,
                           row_sums=self.phi_row_sums,  # a subset's sums lie in the range
-                          checked=self.checked)  # the same numbers, checked or not
+                          checked=self.checked,  # the same numbers, checked or not
+                          stationary=self.stationary, reward_offset=self.reward_offset)
 
 
 def _check_stored(value: np.ndarray, name: str, what: str, path) -> None:

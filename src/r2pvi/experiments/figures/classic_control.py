@@ -158,8 +158,7 @@ def replication(seq, *, task, replication, settings):
     rows, policies = [], []
     for label, kind, param, divergence in _algorithms(s):
         est = make_estimator(kind, param, divergence=divergence, **common)
-        if s["time_homogeneous"]:
-            est.set_params(time_homogeneous=True)
+        est.set_params(time_homogeneous=bool(s["time_homogeneous"]))  # not "auto"
         t0 = time.perf_counter()
         est.fit(data)
         seconds = time.perf_counter() - t0
