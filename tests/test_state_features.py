@@ -208,3 +208,14 @@ def test_float32_state_features_fit_like_float32_dense_rows():
         x = R2PVI("kl", lam=0.5, beta=0.1, r_max=1.0, time_homogeneous=pooled).fit(a)
         y = R2PVI("kl", lam=0.5, beta=0.1, r_max=1.0, time_homogeneous=pooled).fit(b)
         np.testing.assert_allclose(x.weights_, y.weights_, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_per_step_fits_on_the_state_layout_report_what_dense_rows_report():
+    rng = np.random.default_rng(11)
+    crossed, dense = _both(_episodes(rng, 50, max_len=12), 10)
+    a = R2PVI("tv", lam=0.3, time_homogeneous=False).fit(crossed).fit_report_
+    b = R2PVI("tv", lam=0.3, time_homogeneous=False).fit(dense).fit_report_
+    np.testing.assert_array_equal(a.rows, b.rows)
+    np.testing.assert_allclose(a.constant_fit, b.constant_fit, rtol=1e-12)
+    np.testing.assert_array_equal(a.absorbing, b.absorbing)

@@ -168,6 +168,9 @@ class FitDiagnostics:
                 f"  absorbing transitions: {int(self._used_absorbing().sum())} rows; "
                 f"regressions without one: {self.steps_without_absorbing} of "
                 f"{self._used_absorbing().size}")
+        if self.stopped_at is not None:
+            lines.append(f"  fixed point: the weights stopped changing at step "
+                         f"{self.stopped_at}; steps 0 .. {self.stopped_at - 1} hold its weights")
         for reason in self.starved():
             lines.append("  STARVED: " + reason)
         return "\n".join(lines)
@@ -286,6 +289,12 @@ def _chunked_diagonal_and_sums(E, weights):
     row_sums = source.phi_row_sums
     if source.unit_rows or (row_sums is not None and row_sums[0] > 0):  # no empty row
         return diag, sums, n, float(n) if weights is None else float(np.sum(weights))
+    crossed = getattr(source.phi, "crossed_step", None)  # state features held in memory
+    if crossed is not None:
+        rows = crossed(E.h)
+        if sums is None:
+            sums = rows.colsums(weights)
+        return (diag, sums) + _transitions(rows.used(), weights)
     held = source.phi.float64_array()  # the rows when held in memory, else None
     if held is not None:
         rows = held[E.h]

@@ -215,6 +215,11 @@ class CrossedField(Field):
         used = self.actions >= 0
         return bool((self.psi[:-1][used] >= 0).all())
 
+    def crossed_step(self, h: int) -> CrossedRows:
+        """Step ``h``'s rows as :class:`CrossedRows` (views): their sums without forming them
+        (a fit's diagnostics)."""
+        return CrossedRows(self.psi[h], self.actions[h], self.n_actions)
+
     def pooled_rows(self, P: int) -> CrossedRows:
         """Steps ``0 .. P-1`` as one :class:`CrossedRows` (step-major rows, a view)."""
         K, m = self.shape[1], self.psi.shape[2]
