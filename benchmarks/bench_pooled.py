@@ -52,7 +52,8 @@ eps, o, t = [], 0, 0
 for n, tm in zip(lens, term):
     f = np.zeros(n, bool); f[-1] = tm
     eps.append({"observations": obs[o:o + n + 1], "actions": acts[t:t + n],
-                "rewards": rews[t:t + n], "terminations": f, "truncations": ~f & (np.arange(n) == n - 1)})
+                "rewards": rews[t:t + n], "terminations": f,
+                "truncations": ~f & (np.arange(n) == n - 1)})
     o += n + 1; t += n
 fmap = cross_actions(NormalizedRBF(n_centers=3).fit(obs), 2)
 if args["dir"]:
