@@ -22,8 +22,9 @@ DATASET_FORMAT_VERSION = 1  # the legacy single-file .npz format (still read and
 def save(self, path, *, dtype=None, overwrite: bool = False,
          next_form: str = "full") -> Path:
     """Save in the on-disk format: a directory of step-major ``.npy`` files and a JSON
-    manifest (format version 2), written in a temporary directory and renamed into
-    place. A path ending in ``.npz`` writes the legacy single-file format (version 1),
+    manifest (format version 2; 3 for episodes stored as state features, which keep that
+    layout: ``psi.npy`` once per observation), written in a temporary directory and renamed
+    into place. A path ending in ``.npz`` writes the legacy single-file format (version 1),
     atomically too. An existing path is refused unless ``overwrite=True``, and then too
     unless it holds an r2pvi dataset (a dataset directory holding only its own files, a
     dataset ``.npz`` file) or nothing (an empty directory; an empty file for an ``.npz``
