@@ -25,7 +25,7 @@ __all__ = ["CrossedRidgeExpectation", "next_penalty", "PooledNextValues", "conve
 
 # Consecutive pooled steps whose weights differ by at most this (relative to the largest
 # weight, at least 1) are a fixed point: the fit copies them to the remaining steps.
-STOP_RTOL = 1e-12
+STOP_RTOL = 1e-10
 
 
 class _Rows:
