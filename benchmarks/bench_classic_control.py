@@ -46,8 +46,7 @@ def fit_times(data, repeats, pooled):
     ests = {}
     for label, _family, kind, param, div in estimators(s):
         est = make_estimator(kind, param, divergence=div, **common)
-        if pooled:
-            est.set_params(time_homogeneous=True)
+        est.set_params(time_homogeneous=pooled)   # not "auto" (pooled for episodes)
         ests[label] = est
     times = {k: [] for k in ests}
     cpu = {k: [] for k in ests}
