@@ -1,9 +1,10 @@
 """Speed of the classic-control benchmark (``r2pvi reproduce cartpole``).
 
-1. **Fit time** of every algorithm of the benchmark on its default data: 100 episodes of the
-   epsilon-greedy (0.3) LQR expert on nominal CartPole, horizon 200, normalized RBF features
-   (3^4 centers x 2 actions = 162 features); per-step estimators, and pooled steps
-   (``time_homogeneous=True``) when the estimators have that option. Each timing is the
+1. **Fit time** of every default estimator of the benchmark on its data: ``--data-episodes``
+   episodes (100 here; 1000 in the benchmark) of the epsilon-greedy (0.3) LQR expert in the
+   noisy CartPole (:class:`~r2pvi.envs.noisy_cartpole_gym.NoisyCartPoleEnv`), horizon 200,
+   normalized RBF features (3^4 centers x 2 actions = 162 features); per-step estimators,
+   and pooled steps (``time_homogeneous=True``). Each timing is the
    median of ``--repeats`` round-robin rounds (after one warm-up fit), with BLAS on one
    thread, in wall-clock and in CPU seconds of this process (``time.process_time``: on a
    shared, overloaded machine the wall clock measures the other jobs too).
@@ -14,6 +15,7 @@
 
     python benchmarks/bench_classic_control.py
     python benchmarks/bench_classic_control.py --repeats 5 --episodes 40 --n-envs 20
+    python benchmarks/bench_classic_control.py --repeats 1 --data-episodes 1000
 """
 
 from __future__ import annotations
@@ -26,33 +28,25 @@ import gymnasium
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from r2pvi import OfflineDataset
-from r2pvi.envs import EpsilonGreedy, collect_episodes
 from r2pvi.envs.experts import CartPoleLQR
-from r2pvi.episodes import episode_observations
 from r2pvi.evaluation import episode_returns
-from r2pvi.experiments.figures.classic_control import CARTPOLE_DEFAULTS, _algorithms
+from r2pvi.experiments.figures.cartpole_protocol import DEFAULTS, estimators, protocol_dataset
 from r2pvi.experiments.figures.common import make_estimator
-from r2pvi.features import NormalizedRBF, cross_actions
 
 
-def default_data(seed=0):
-    s = CARTPOLE_DEFAULTS
-    expert = CartPoleLQR()
-    eps = collect_episodes(gymnasium.make("CartPole-v1"), EpsilonGreedy(expert, s["epsilon"], 2),
-                           s["trajectories"], seed=seed, max_steps=s["horizon"], n_envs=50)
-    fmap = cross_actions(NormalizedRBF(n_centers=s["centers"]).fit(episode_observations(eps)), 2)
-    return OfflineDataset.from_episodes(eps, fmap, 2, horizon=s["horizon"]), fmap
+def default_data(episodes, seed=0):
+    _, fmap, data, _, _ = protocol_dataset(np.random.SeedSequence(seed), {**DEFAULTS,
+                                                                   "episodes": episodes})
+    return data, fmap
 
 
 def fit_times(data, repeats, pooled):
-    s = CARTPOLE_DEFAULTS
+    s = DEFAULTS
     common = {"beta": s["beta"], "gamma": s["gamma"], "penalty": s["penalty"], "r_max": 1.0}
     ests = {}
-    for label, kind, param, div in _algorithms(s):
+    for label, _family, kind, param, div in estimators(s):
         est = make_estimator(kind, param, divergence=div, **common)
-        if pooled:
-            est.set_params(time_homogeneous=True)
+        est.set_params(time_homogeneous=pooled)   # not "auto" (pooled for episodes)
         ests[label] = est
     times = {k: [] for k in ests}
     cpu = {k: [] for k in ests}
@@ -96,16 +90,15 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--episodes", type=int, default=20, help="test episodes per rollout")
     parser.add_argument("--n-envs", type=int, default=20, help="vectorized sub-environments")
+    parser.add_argument("--data-episodes", type=int, default=100,
+                        help="behaviour episodes of the fitted dataset")
     args = parser.parse_args()
     t0 = time.perf_counter()
-    data, fmap = default_data()
+    data, fmap = default_data(args.data_episodes)
     print(f"default data: {data} (collected and featurized in {time.perf_counter() - t0:.2f} s)")
     with threadpool_limits(limits=1, user_api="blas"):
-        modes = [False]
-        if "time_homogeneous" in make_estimator("PEVI")._param_names():
-            modes.append(True)
         learned = None
-        for pooled in modes:
+        for pooled in (False, True):
             times, ests = fit_times(data, args.repeats, pooled)
             learned = learned or ests["PEVI"]
             print(f"\nfit time, {'pooled steps' if pooled else 'per-step'} "

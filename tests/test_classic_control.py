@@ -1,10 +1,7 @@
-"""The classic-control robustness benchmark (``r2pvi reproduce cartpole`` / ``mountaincar``)
-and its hand-built experts."""
+"""The classic-control experts and the MountainCar robustness benchmark (``r2pvi reproduce
+mountaincar``); ``r2pvi reproduce cartpole`` is tested in test_reproduce_cartpole.py."""
 
 from __future__ import annotations
-
-import csv
-import json
 
 import numpy as np
 import pytest
@@ -12,22 +9,15 @@ import pytest
 gym = pytest.importorskip("gymnasium")
 
 from r2pvi.algorithms import PEVI  # noqa: E402
-from r2pvi.cli import main  # noqa: E402
 from r2pvi.envs.experts import CartPoleLQR, MountainCarEnergy, cartpole_linearization  # noqa: E402
 from r2pvi.evaluation import evaluate_policy  # noqa: E402
 from r2pvi.experiments.figures.classic_control import (  # noqa: E402
-    CARTPOLE_DEFAULTS,
+    MOUNTAINCAR,
     MOUNTAINCAR_DEFAULTS,
     _algorithms,
     replication,
 )
 from r2pvi.experiments.reproduce import figure_names  # noqa: E402
-
-TINY = ["--replications", "1", "--trajectories", "6", "--test-episodes", "2",
-        "--set", "horizon=25", "--set", "lams=[10]", "--set", "rhos=[0.1]",
-        "--set", "divergences=['tv','kl']", "--set", "centers=2",
-        "--set", "force_mag=[-0.5,0,1]", "--set", "gravity=[0,2]", "--set", "length=[0,3]",
-        "--set", "action_noise=[0,1]"]
 
 
 # --------------------------------------------------------------------------- experts
@@ -99,40 +89,6 @@ def test_mountaincar_expert_reaches_the_flag():
 
 
 # --------------------------------------------------------------------------- benchmark
-def test_cartpole_end_to_end_through_the_cli(tmp_path, capsys):
-    assert main(["reproduce", "cartpole", "--out", str(tmp_path), "--no-progress"] + TINY) == 0
-    out = capsys.readouterr().out
-    assert "cartpole: average return" in out and "fit s" in out
-    for ext in ("csv", "json", "png", "pdf"):
-        assert (tmp_path / f"cartpole.{ext}").stat().st_size > 0
-    with open(tmp_path / "cartpole.csv") as fh:
-        rows = list(csv.DictReader(fh))
-    required = {"figure", "replication", "algorithm", "divergence", "param", "perturbation",
-                "level", "value", "stderr", "quantity"}
-    assert required <= set(rows[0])
-    returns = [r for r in rows if r["quantity"] == "average return"]
-    fits = [r for r in rows if r["quantity"] == "fit time"]
-    algs = ["PEVI", "R2PVI-TV lam=10", "R2PVI-KL lam=10", "DRPVI rho=0.1"]
-    assert [r["algorithm"] for r in fits] == algs
-    assert all(float(r["value"]) > 0 for r in fits)
-    levels = [("force_mag", -0.5), ("force_mag", 0.0), ("force_mag", 1.0), ("gravity", 0.0),
-              ("gravity", 2.0), ("length", 0.0), ("length", 3.0), ("action_noise", 0.0),
-              ("action_noise", 1.0)]
-    policies = algs + ["expert", "behaviour (eps=0.3)"]
-    assert len(returns) == len(levels) * len(policies)
-    got = {(r["perturbation"], float(r["level"])) for r in returns}
-    assert got == set(levels)
-    for r in returns:
-        assert 1.0 <= float(r["value"]) <= 25.0           # CartPole: 1 per step, H = 25
-        assert float(r["stderr"]) >= 0.0
-    nominal_expert = [float(r["value"]) for r in returns
-                      if r["algorithm"] == "expert" and float(r["level"]) == 0.0
-                      and r["perturbation"] != "action_noise"]
-    assert nominal_expert == [25.0] * 3                   # balances the whole horizon
-    data = json.loads((tmp_path / "cartpole.json").read_text())
-    assert data["config"]["settings"]["horizon"] == 25
-
-
 def test_benchmarks_run_by_name_only(tmp_path):
     from r2pvi.cli import build_parser, plan_reproduce
 
@@ -160,22 +116,17 @@ def test_replication_is_seeded_and_mountaincar_runs():
 
 
 def test_settings_and_time_homogeneous():
-    s = {**CARTPOLE_DEFAULTS}
+    s = {**MOUNTAINCAR_DEFAULTS}
     labels = [a[0] for a in _algorithms(s)]
     assert labels[0] == "PEVI" and len(labels) == 1 + 3 * 3 + 2
-    bad = {**s, "epsilon": 1.5}
     with pytest.raises(ValueError, match="epsilon"):
-        from r2pvi.experiments.figures.classic_control import CARTPOLE
-        CARTPOLE.tasks(bad)
-    with pytest.raises(ValueError, match="force_mag"):
-        CARTPOLE.tasks({**s, "force_mag": [-1.0]})
+        MOUNTAINCAR.tasks({**s, "epsilon": 1.5})
+    with pytest.raises(ValueError, match="force"):
+        MOUNTAINCAR.tasks({**s, "force": [-1.0]})
     tiny = {**s, "horizon": 8, "trajectories": 3, "test_episodes": 2, "lams": [], "rhos": [],
-            "force_mag": [0.0], "gravity": [], "length": [], "action_noise": [],
-            "references": False, "centers": 2, "time_homogeneous": True}
-    seq = np.random.SeedSequence(1)
-    if "time_homogeneous" in PEVI._param_names():
-        rows = replication(seq, task="cartpole", replication=0, settings=tiny)
-        assert [r["quantity"] for r in rows] == ["fit time", "average return"]
-    else:  # the estimators do not have the option yet: a clear error, not a silent default
-        with pytest.raises(ValueError, match="time_homogeneous"):
-            replication(seq, task="cartpole", replication=0, settings=tiny)
+            "force": [0.0], "gravity": [], "action_noise": [], "references": False,
+            "centers": 2, "time_homogeneous": True}
+    assert "time_homogeneous" in PEVI._param_names()
+    rows = replication(np.random.SeedSequence(1), task="mountaincar", replication=0,
+                       settings=tiny)
+    assert [r["quantity"] for r in rows] == ["fit time", "average return"]

@@ -43,3 +43,14 @@ def test_the_guide_shows_sparse_rows_and_the_readme_shows_load():
     assert "dense\nfor now" not in guide and "sparse engine path is planned" not in guide
     assert "SparseOfflineDataset" in guide
     assert "OfflineDataset.load(path)" in (ROOT / "README.md").read_text()
+
+
+def test_the_front_page_examples_run_and_the_episode_one_is_pooled():
+    require("gymnasium")
+    text = (ROOT / "docs" / "index.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert len(blocks) == 2
+    first: dict = {}
+    exec(compile(blocks[0], "index.md", "exec"), first)  # noqa: S102
+    assert first["data"].stationary
+    exec(compile(blocks[1], "index.md", "exec"), {})  # noqa: S102

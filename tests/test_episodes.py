@@ -102,14 +102,15 @@ def test_padding_next_states_do_not_lower_the_data_minimum():
            for _ in range(20)]
     short = ep([0.8, 0.9], [1], [1.0], "trunc")
     ds = OfflineDataset.from_episodes(eps + [short], FMAP, A, horizon=H)
-    est = R2PVI("tv", 0.2, beta=0.0).fit(ds)
-    ref = R2PVI("tv", 0.2, beta=0.0).fit(OfflineDataset.from_episodes(eps, FMAP, A, horizon=H))
+    per_step = {"beta": 0.0, "time_homogeneous": False}  # steps fitted one by one
+    est = R2PVI("tv", 0.2, **per_step).fit(ds)
+    ref = R2PVI("tv", 0.2, **per_step).fit(OfflineDataset.from_episodes(eps, FMAP, A, horizon=H))
     # The short episode adds one real transition at h = 0 only; later steps are unchanged.
     np.testing.assert_allclose(est.weights_[1:], ref.weights_[1:], atol=1e-12)
     zero_padded = OfflineDataset.from_features(
         ds.phi, ds.rewards, np.where(ds.phi.any(-1)[..., None, None], ds.next_phi, 0.0),
         ds.next_values, check_simplex=False)
-    naive = R2PVI("tv", 0.2, beta=0.0).fit(zero_padded)
+    naive = R2PVI("tv", 0.2, **per_step).fit(zero_padded)
     assert not np.allclose(naive.weights_[1], ref.weights_[1])  # the trick matters
 
 

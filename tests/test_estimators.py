@@ -232,7 +232,7 @@ def test_get_set_params_and_clone():
     assert params == {"divergence": "kl", "lam": 0.3, "beta": 0.2, "gamma": 1.0,
                       "penalty": "l1", "v_min": "data", "reward_weights": None, "r_max": 1.0,
                       "variance_aware": False, "delta": 0.05, "kl_form": "normalized",
-                      "time_homogeneous": False, "moments": "valid"}
+                      "time_homogeneous": "auto", "moments": "valid"}
     clone = type(est)(**params)
     assert clone.get_params() == params
     assert est.set_params(lam=2.0) is est and est.lam == 2.0

@@ -148,7 +148,7 @@ def test_a_per_step_cartpole_fit_starves_and_the_pooled_one_does_not():
         episode_observations(episodes)), n_actions=2)
     ds = OfflineDataset.from_episodes(episodes, fmap, n_actions=2, horizon=100)
     with pytest.warns(StarvedFitWarning):
-        per_step = R2PVI("tv", lam=0.1, beta=0.01).fit(ds).fit_report_
+        per_step = R2PVI("tv", lam=0.1, beta=0.01, time_homogeneous=False).fit(ds).fit_report_
     assert per_step.implicit_horizon < 25
     with warnings.catch_warnings():
         warnings.simplefilter("error", StarvedFitWarning)

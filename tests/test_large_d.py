@@ -320,7 +320,7 @@ def test_elliptical_models_with_mixed_factor_kinds_save_and_load(tmp_path):
     obs = np.concatenate([e["observations"] for e in eps])
     fmap = cross_actions(TileCoding(n_tilings=2, n_tiles=3, sparse=True).fit(obs), 2)
     ds = OfflineDataset.from_episodes(eps, fmap, 2, horizon=4)  # steps 2-3: no data
-    est = PEVI(beta=0.1).fit(ds)
+    est = PEVI(beta=0.1, time_homogeneous=False).fit(ds)  # per step: mixed kinds
     path = est.save(tmp_path / "mixed")
     with np.load(path, allow_pickle=False) as npz:
         assert {"elliptical_cinv", "elliptical_sizes"} <= set(npz.files)

@@ -78,3 +78,20 @@ def test_import_r2pvi_does_not_import_sklearn():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": src}, timeout=120)
     assert res.returncode == 0, res.stderr
+
+
+# scikit-learn's estimator checks that do not need X/y arrays (the estimators fit an
+# OfflineDataset, which check_estimator's array-based checks cannot build)
+DATA_FREE_CHECKS = ["check_no_attributes_set_in_init", "check_get_params_invariance",
+                    "check_set_params", "check_parameters_default_constructible",
+                    "check_estimator_repr", "check_estimator_cloneable",
+                    "check_do_not_raise_errors_in_init_or_set_params",
+                    "check_estimator_tags_renamed", "check_valid_tag_types", "check_mixin_order"]
+
+
+@pytest.mark.parametrize("est", ESTIMATORS, ids=lambda e: type(e).__name__)
+@pytest.mark.parametrize("check", DATA_FREE_CHECKS)
+def test_sklearn_estimator_checks_that_apply_pass(est, check):
+    from sklearn.utils import estimator_checks
+
+    getattr(estimator_checks, check)(type(est).__name__, clone(est))

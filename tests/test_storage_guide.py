@@ -21,7 +21,9 @@ def test_storage_guide_runs_block_after_block(tmp_path, monkeypatch, capsys):
     assert "disk 500 4 5 2" in out and "disk float32" in out
     assert "True\nTrue\n" in out  # the fits from disk equal the in-memory fit
     assert "memory memory 250" in out and "dask True" in out
-    for path in ("demo-data", "demo-stream", "demo-half", "demo-from-dask"):
+    # episodes of a crossed map: state features on disk, fitted as in memory
+    assert "['actions.npy', 'next_values.npy', 'psi.npy', 'rewards.npy']\ndisk True" in out
+    for path in ("demo-data", "demo-stream", "demo-half", "demo-from-dask", "demo-episodes"):
         assert (tmp_path / path / "manifest.json").is_file()
 
 

@@ -39,7 +39,8 @@ class GreedyPolicy:
     >>> fmap = cross_actions(StateAggregation(n_bins=2).fit([[0.0], [1.0]]), n_actions=2)
     >>> ep = {"observations": [[0.1], [0.9], [0.9]], "actions": [1, 1], "rewards": [0.0, 1.0],
     ...       "terminations": [False, False], "truncations": [False, True]}
-    >>> est = PEVI(beta=0.0).fit(OfflineDataset.from_episodes([ep], fmap, 2))
+    >>> est = PEVI(beta=0.0, time_homogeneous=False).fit(
+    ...     OfflineDataset.from_episodes([ep], fmap, 2))
     >>> policy = est.as_policy(fmap)
     >>> policy(np.array([0, 1, 7]), np.array([[0.1], [0.9], [0.1]]))   # h = 7 >= H: Q_0
     array([1, 1, 1])

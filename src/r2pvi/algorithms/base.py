@@ -129,11 +129,15 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         raise NotImplementedError
 
     # ------------------------------------------------------------------ fitting
-    def _time_homogeneous(self) -> bool:
-        # time_homogeneous: pooled steps, one Gram matrix for all steps
+    def _time_homogeneous(self, dataset=None) -> bool:
+        """Whether to pool the steps (one Gram matrix for all): ``time_homogeneous``, with
+        "auto" resolved by ``dataset.stationary`` (per step without a dataset)."""
         value = getattr(self, "time_homogeneous", False)
+        if isinstance(value, str) and value.lower() == "auto":
+            return bool(getattr(dataset, "stationary", False))
         if not isinstance(value, bool | np.bool_):
-            raise TypeError(f"time_homogeneous must be True or False, got {plain(value)!r}")
+            raise TypeError(f"time_homogeneous must be 'auto', True or False, got "
+                            f"{plain(value)!r}")
         return bool(value)
 
     def _run_engine(self, dataset: OfflineDataset, params: dict, sample_weights=None,
@@ -181,7 +185,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             )
         params = self._validate_common(dataset)
         params.update(self._validate_extra(dataset))
-        params["time_homogeneous"] = self._time_homogeneous()
+        params["time_homogeneous"] = self._time_homogeneous(dataset)
         check_reward_range(dataset, params["r_max"], params["reward_weights"])
         with limit_blas():  # one BLAS thread by default: see r2pvi._threads
             model = self._fit_model(dataset, params)

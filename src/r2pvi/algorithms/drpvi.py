@@ -81,12 +81,15 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         ``V_{h+1}``, whose estimated conditional variance (in units of ``r_max^2``, floored
         at 1; :func:`~r2pvi.algorithms._variance.variance_weights`) weights a second pass
         (weighted Gram matrix, targets and penalty).
-    time_homogeneous : bool, default False
+    time_homogeneous : {"auto", True, False}, default "auto"
         Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
-        last step's next states are not data), with one
-        Gram matrix factored once (per-step work: next-state values and regressions). Valid
-        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
-        e.g. a Gymnasium environment); False is the paper's per-step estimator.
+        last step's next states are not data), with one Gram matrix factored once (per-step
+        work: next-state values and regressions). Valid only when the nominal dynamics and
+        rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
+        False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
+        steps are stationary (:attr:`OfflineDataset.stationary
+        <r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
+        the others per step (the paper's experiments); ``fit_report_.pooled`` says which.
 
     Attributes
     ----------
@@ -122,7 +125,7 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         reward_weights=None,
         r_max=1.0,
         variance_aware=False,
-        time_homogeneous=False,
+        time_homogeneous="auto",
     ):
         self.rho = rho
         self.beta = beta

@@ -154,12 +154,15 @@ class DRVIL(LinearEstimator):
         under the row-normalized weights (no ridge shrinkage bias), or Ma et al.'s regression
         of ``e^{-V/b} - 1`` (:func:`~r2pvi.duals.kl_constrained`, ``normalized=`` /
         ``centered=``). The same for distributions.
-    time_homogeneous : bool, default False
+    time_homogeneous : {"auto", True, False}, default "auto"
         Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
-        last step's next states are not data), with one
-        Gram matrix factored once (per-step work: next-state values and regressions). Valid
-        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
-        e.g. a Gymnasium environment); False is the paper's per-step estimator.
+        last step's next states are not data), with one Gram matrix factored once (per-step
+        work: next-state values and regressions). Valid only when the nominal dynamics and
+        rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
+        False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
+        steps are stationary (:attr:`OfflineDataset.stationary
+        <r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
+        the others per step (the paper's experiments); ``fit_report_.pooled`` says which.
 
     Attributes
     ----------
@@ -183,7 +186,7 @@ class DRVIL(LinearEstimator):
     """
 
     def __init__(self, rho, *, beta=1.0, gamma=1.0, penalty="l1", reward_weights=None,
-                 r_max=1.0, b_min="auto", form="normalized", time_homogeneous=False):
+                 r_max=1.0, b_min="auto", form="normalized", time_homogeneous="auto"):
         self.rho = rho
         self.beta = beta
         self.gamma = gamma

@@ -35,12 +35,15 @@ class PEVI(LinearEstimator):
         Reward bound: ``Q_h`` is clipped to ``[0, (H - h) r_max]`` (0-based ``h``).
     penalty : {"elliptical", "l1", "l2"}, default "elliptical"
         Penalty form (PEVI's own is the elliptical norm).
-    time_homogeneous : bool, default False
+    time_homogeneous : {"auto", True, False}, default "auto"
         Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
-        last step's next states are not data), with one
-        Gram matrix factored once (per-step work: next-state values and regressions). Valid
-        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
-        e.g. a Gymnasium environment); False is the paper's per-step estimator.
+        last step's next states are not data), with one Gram matrix factored once (per-step
+        work: next-state values and regressions). Valid only when the nominal dynamics and
+        rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
+        False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
+        steps are stationary (:attr:`OfflineDataset.stationary
+        <r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
+        the others per step (the paper's experiments); ``fit_report_.pooled`` says which.
 
     Examples
     --------
@@ -55,7 +58,7 @@ class PEVI(LinearEstimator):
     """
 
     def __init__(self, *, beta=1.0, gamma=1.0, reward_weights=None, r_max=1.0,
-                 penalty="elliptical", time_homogeneous=False):
+                 penalty="elliptical", time_homogeneous="auto"):
         self.beta = beta
         self.gamma = gamma
         self.reward_weights = reward_weights

@@ -181,12 +181,15 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         factor's smallest sampled value as ``lam -> 0``. "paper": the literal
         ``-lam log max{w', exp(-H r_max/lam)}``, whose ridge shrinkage bias ``-lam log s_i``
         grows with ``lam``. See :func:`~r2pvi.duals.kl_regularized`.
-    time_homogeneous : bool, default False
+    time_homogeneous : {"auto", True, False}, default "auto"
         Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
-        last step's next states are not data), with one
-        Gram matrix factored once (per-step work: next-state values and regressions). Valid
-        only when the nominal dynamics and rewards do not depend on h (a time-homogeneous MDP,
-        e.g. a Gymnasium environment); False is the paper's per-step estimator.
+        last step's next states are not data), with one Gram matrix factored once (per-step
+        work: next-state values and regressions). Valid only when the nominal dynamics and
+        rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
+        False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
+        steps are stationary (:attr:`OfflineDataset.stationary
+        <r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
+        the others per step (the paper's experiments); ``fit_report_.pooled`` says which.
     moments : {"valid", "ridge"}, default "valid"
         KL (``kl_form="normalized"``) and chi^2 only: how a factor's moments are estimated
         from its signed ridge weights ``M_i`` (row sum ``s_i``). "valid": the normalized
@@ -239,7 +242,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         variance_aware=False,
         delta=0.05,
         kl_form="normalized",
-        time_homogeneous=False,
+        time_homogeneous="auto",
         moments="valid",
     ):
         self.divergence = divergence

@@ -184,6 +184,27 @@ class OfflineDataset:
         return self._source.reward_noise
 
     @property
+    def stationary(self) -> bool:
+        """Whether the steps are draws of one stationary environment (the same dynamics and
+        rewards at every step), so that the estimators' default ``time_homogeneous="auto"``
+        pools them (one regression over every transition). True for datasets built by
+        :meth:`from_episodes` (Gymnasium rollouts, Minari datasets), kept by :meth:`subset`,
+        :meth:`save` and :meth:`open`; False for the other constructors (a finite MDP's
+        step-dependent factors, the paper's experiments: fitted per step). An estimator's
+        ``time_homogeneous=True`` or ``False`` overrides it.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> ep = {"observations": [[0.0], [1.0]], "actions": [0], "rewards": [1.0],
+        ...       "terminations": [True], "truncations": [False]}
+        >>> OfflineDataset.from_episodes([ep], lambda o, a: np.ones((len(a), 1)), 1).stationary
+        True
+        """
+        return self._source.stationary
+
+    @property
     def has_known_values(self) -> bool:
         """Whether any next-state action value is given."""
         return self._source.next.has_known_values
@@ -346,7 +367,8 @@ class OfflineDataset:
 
 
 def dataset_from_episodes(episodes, feature_map, n_actions: int, horizon: int | None = None, *,
-                          reward_offset=None, check_simplex: bool = True) -> OfflineDataset:
+                          reward_offset=None, check_simplex: bool = True,
+                          dtype=None) -> OfflineDataset:
     """Build an :class:`~r2pvi.OfflineDataset` from episodes of any length.
 
     The same as :meth:`r2pvi.OfflineDataset.from_episodes` (the public entry point); see
@@ -354,4 +376,5 @@ def dataset_from_episodes(episodes, feature_map, n_actions: int, horizon: int | 
     offsets).
     """
     return OfflineDataset.from_episodes(episodes, feature_map, n_actions, horizon,
-                                        reward_offset=reward_offset, check_simplex=check_simplex)
+                                        reward_offset=reward_offset, check_simplex=check_simplex,
+                                        dtype=dtype)

@@ -38,9 +38,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from ..features.maps import as_feature_map
+from ..features.maps import ActionCrossing, as_feature_map
 from .build import _check_map_actions, check_simplex_features
+from .build_crossed import crossed_episodes
 from .build_sparse import sparse_episodes
+from .storage.fields import _float_dtype
 
 __all__ = ["Episode", "from_episodes", "episode_observations", "as_episode_list"]
 
@@ -161,7 +163,7 @@ def _check_episode(ep, k: int, n_actions: int):
 
 
 def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | None = None, *,
-                  reward_offset=None, check_simplex: bool = True):
+                  reward_offset=None, check_simplex: bool = True, dtype=None):
     """Build a dataset from episodes of any length (Gymnasium rollouts, Minari datasets).
 
     Parameters
@@ -182,6 +184,19 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
         Negative rewards are refused unless shifted by ``reward_offset`` (an exact
         shift: the same greedy policy; see :mod:`r2pvi.episodes`).
     check_simplex : bool, default True
+    dtype : {None, "float32", "float64"}, default None
+        Storage type of the features (None: float64). Fits accumulate in float64 either
+        way; float32 halves the memory of large datasets.
+
+    With a feature map crossed with the actions (:func:`~r2pvi.features.cross_actions`,
+    or a fitted observation transformer) whose observation map gives dense rows, the
+    dataset stores the observation features ``psi`` once per observation and the actions
+    by index (:mod:`r2pvi.data.storage.crossed`): ``m`` numbers per transition instead of
+    ``(1 + A) A m``, and pooled fits (``time_homogeneous=True``) that read ``psi`` twice a
+    step. The numbers are those of the dense rows.
+
+    The dataset is :attr:`~r2pvi.OfflineDataset.stationary`: the estimators' default
+    ``time_homogeneous="auto"`` pools its steps.
 
     A terminated episode continues in an absorbing state of known value 0; a truncated
     one ends without a terminal value; steps after an episode's end carry zero features
@@ -249,10 +264,19 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
 
     offset = _reward_offset(reward_offset, rews)
     N = len(rews)
+    if dtype is not None:
+        dtype = _float_dtype(dtype)
+    if isinstance(fmap, ActionCrossing):  # psi once per observation, unless sparse rows
+        ds = crossed_episodes(cls, fmap, eps, lengths, h_idx, k_idx, acts, rews + offset,
+                              absorbing, offset, K, H, A, check_simplex, dtype)
+        if ds is not None:
+            return ds
     phi_flat = fmap(cur, acts)
     if sp.issparse(phi_flat):  # tile coding, aggregation: sparse rows all the way
-        return sparse_episodes(cls, phi_flat, fmap, nxt, rews + offset, h_idx, k_idx, absorbing,
-                               offset, K, H, A, check_simplex)
+        ds = sparse_episodes(cls, phi_flat, fmap, nxt, rews + offset, h_idx, k_idx, absorbing,
+                             offset, K, H, A, check_simplex)
+        ds._source.stationary, ds._source.reward_offset = True, offset
+        return ds
     phi_flat = _dense(phi_flat, N, "feature_map(observations, actions)")
     d = phi_flat.shape[1]
     ok = not check_simplex or check_simplex_features(  # real rows only: padding is zero
@@ -289,11 +313,14 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
         next_phi[h, pad] = next_phi[h, src]
         next_values[h, pad] = next_values[h, src]
         next_states[pad, h] = next_states[src, h]
-    return cls.from_features(
+    ds = cls.from_features(
         phi.transpose(1, 0, 2), rewards.T, next_phi.transpose(1, 0, 2, 3),
-        next_values.transpose(1, 0, 2), check_simplex=False,
+        next_values.transpose(1, 0, 2), check_simplex=False, dtype=dtype,
         states=states, actions=actions, next_states=next_states,
     )
+    # draws of one environment: the pooled form by default
+    ds._source.stationary, ds._source.reward_offset = True, offset
+    return ds
 
 
 def _reward_offset(reward_offset, rewards: np.ndarray) -> float:

@@ -22,8 +22,9 @@ DATASET_FORMAT_VERSION = 1  # the legacy single-file .npz format (still read and
 def save(self, path, *, dtype=None, overwrite: bool = False,
          next_form: str = "full") -> Path:
     """Save in the on-disk format: a directory of step-major ``.npy`` files and a JSON
-    manifest (format version 2), written in a temporary directory and renamed into
-    place. A path ending in ``.npz`` writes the legacy single-file format (version 1),
+    manifest (format version 2; 3 for episodes stored as state features, which keep that
+    layout: ``psi.npy`` once per observation), written in a temporary directory and renamed
+    into place. A path ending in ``.npz`` writes the legacy single-file format (version 1),
     atomically too. An existing path is refused unless ``overwrite=True``, and then too
     unless it holds an r2pvi dataset (a dataset directory holding only its own files, a
     dataset ``.npz`` file) or nothing (an empty directory; an empty file for an ``.npz``
@@ -78,6 +79,10 @@ def _save_npz(self, path, overwrite: bool = False):
             raise TypeError(f"cannot save {key!r}: object arrays are not supported")
         arrays["extra_" + key] = value
     meta = {"reward_noise": self.reward_noise} if self.reward_noise else {}
+    if self.stationary:
+        meta["stationary"] = True
+    if self._source.reward_offset:
+        meta["reward_offset"] = self._source.reward_offset
     return save_npz(path, "OfflineDataset", DATASET_FORMAT_VERSION, arrays, meta,
                     overwrite=overwrite)
 
@@ -108,7 +113,7 @@ def load(cls, path):
         raise file_error(path, unknown[0], "is not a field of an OfflineDataset file")
     extras = {k[len("extra_") :]: v for k, v in arrays.items() if k.startswith("extra_")}
     try:  # the loaded arrays go through the same checks as from_features
-        return cls.from_features(
+        ds = cls.from_features(
             arrays["phi"],
             arrays["rewards"],
             arrays["next_phi"],
@@ -119,3 +124,8 @@ def load(cls, path):
         )
     except (TypeError, ValueError) as exc:
         raise file_error(path, None, f"holds invalid data: {exc}") from None
+    ds._source.stationary = header.get("stationary", False) is True
+    offset = header.get("reward_offset", 0.0)
+    if isinstance(offset, int | float) and not isinstance(offset, bool) and offset >= 0:
+        ds._source.reward_offset = float(offset)
+    return ds

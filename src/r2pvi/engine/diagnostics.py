@@ -69,6 +69,9 @@ class FitDiagnostics:
         fit); None when the known values are not in memory.
     has_absorbing : bool
         Whether the dataset gives any known next-state value.
+    stopped_at : int or None
+        A pooled fit that reached a fixed point: the step from which the weights stopped
+        changing (every earlier step holds that step's weights); None otherwise.
     """
 
     horizon: int
@@ -80,6 +83,7 @@ class FitDiagnostics:
     constant_fit: np.ndarray | None
     absorbing: np.ndarray | None
     has_absorbing: bool
+    stopped_at: int | None = None
 
     @property
     def implicit_discount(self) -> float | None:
@@ -164,6 +168,9 @@ class FitDiagnostics:
                 f"  absorbing transitions: {int(self._used_absorbing().sum())} rows; "
                 f"regressions without one: {self.steps_without_absorbing} of "
                 f"{self._used_absorbing().size}")
+        if self.stopped_at is not None:
+            lines.append(f"  fixed point: the weights stopped changing at step "
+                         f"{self.stopped_at}; steps 0 .. {self.stopped_at - 1} hold its weights")
         for reason in self.starved():
             lines.append("  STARVED: " + reason)
         return "\n".join(lines)
@@ -235,6 +242,9 @@ def _gram_diagonal_and_sums(E, factor, weights):
     operator's state is not changed."""
     if factor is None:  # chunked: the primal factor and the sums that rode along with it
         return _chunked_diagonal_and_sums(E, weights)
+    own = getattr(E, "gram_diagonal_and_sums", None)
+    if own is not None:  # rows the operator never forms (state features)
+        return own()
     phi = E.phi
     w = np.ones(phi.shape[0]) if weights is None else np.asarray(weights, dtype=float)
     if sp.issparse(phi):
@@ -279,6 +289,12 @@ def _chunked_diagonal_and_sums(E, weights):
     row_sums = source.phi_row_sums
     if source.unit_rows or (row_sums is not None and row_sums[0] > 0):  # no empty row
         return diag, sums, n, float(n) if weights is None else float(np.sum(weights))
+    crossed = getattr(source.phi, "crossed_step", None)  # state features held in memory
+    if crossed is not None:
+        rows = crossed(E.h)
+        if sums is None:
+            sums = rows.colsums(weights)
+        return (diag, sums) + _transitions(rows.used(), weights)
     held = source.phi.float64_array()  # the rows when held in memory, else None
     if held is not None:
         rows = held[E.h]

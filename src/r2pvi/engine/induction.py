@@ -31,10 +31,12 @@ import numpy as np
 
 from ..data import OfflineDataset
 from ..data.storage._finite import FIELDS, NonFiniteRows
+from ..data.storage.crossed import CrossedRows
 from ..duals._scratch import release
 from ..duals.gram import GramFactor
 from ..duals.operator import ExpectationOperator, RidgeExpectation
 from .diagnostics import StepRecorder, known_rows
+from .pooled import CrossedRidgeExpectation, PooledNextValues, converged
 from .q import FittedModel, _NextValue
 from .steps import ChunkedRidgeExpectation, _factor, _streams, pooled_steps
 
@@ -93,6 +95,7 @@ def backward_induction(
     time_homogeneous: bool = False,
     form: str = "auto",
     value_moments: bool = False,
+    early_stop: bool = True,
 ) -> FittedModel:
     """Run the backward induction of Algorithms 1-2 with ``rule`` estimating ``w_h``.
 
@@ -122,13 +125,17 @@ def backward_induction(
     value_moments : bool, default False
         Also store ``E_h([U, U^2])``, ``U = V_{h+1} / r_max`` (``FittedModel.value_moments``),
         which the variance-aware variants' first pass needs; two more regressions per step.
+    early_stop : bool, default True
+        Pooled steps without sample weights: when two consecutive steps' weights agree (to
+        ``pooled.STOP_RTOL`` relative) and no learned value reached its step's bound, every
+        earlier step would compute the same values and weights (the same operator, the same
+        next values), so the fit copies them instead (``FittedModel.diagnostics.stopped_at``).
     """
     H, d = dataset.horizon, dataset.n_features
     # The step-major data (memory, files, Dask arrays, sparse rows, observations): the engine
     # asks the source for a step's rows and products, never which kind it holds.
     source = dataset._source
     nonneg_phi = dataset._nonnegative_phi  # None: checked on a step's features when needed
-    nonneg = dataset.nonnegative_next_features if time_homogeneous else None
     weights = np.zeros((H, d))
     thetas = np.zeros((H, d))
     inv_diags = np.zeros((H, d))
@@ -144,9 +151,18 @@ def backward_induction(
         for h in range(pooled_steps(H)):
             source.check_rewards(h, pooled[1][h * K:(h + 1) * K], r_max)
     n_rows = dataset.n_trajectories * (pooled_steps(H) if time_homogeneous else 1)
-    next_state_values = np.zeros((H, n_rows))
+    # V_{h+1} at the sampled next states: kept for per-step fits (H K numbers) and for the
+    # variance-aware first pass; a pooled fit's would be H P K numbers (a step's are enough)
+    keep_values = not time_homogeneous or value_moments
+    next_state_values = np.zeros((H, n_rows) if keep_values else (0, n_rows))
     v_upper = H * r_max
     E = None
+    # pooled: V at every next state, with the penalty formed once per factor
+    pooled_values = None if pooled is None else PooledNextValues(
+        pooled[2], pooled[3], "next" not in checked, source.reward_offset, H,
+        dataset.n_trajectories)
+    new_factor = True
+    stopped_at = None
     # Per-step fits of dense features read a step's features by chunk (ChunkedRidgeExpectation);
     # buffers: one step's (K, d) float64 features, reused when a rule needs them whole.
     chunked = _streams(source, form, time_homogeneous)
@@ -181,8 +197,14 @@ def backward_induction(
                     theta = None
                     inv_diag = None
                 elif E is None or not time_homogeneous or sw is not None:
-                    factor = _factor(source, None if time_homogeneous else h, phi, gamma, sw, form)
-                    E = RidgeExpectation(phi, factor, sw, nonneg_phi)
+                    if isinstance(phi, CrossedRows):  # state features: rows never formed
+                        E = CrossedRidgeExpectation(phi, gamma, sw, nonneg_phi)
+                        factor = E.factor
+                    else:
+                        factor = _factor(source, None if time_homogeneous else h, phi, gamma,
+                                         sw, form)
+                        E = RidgeExpectation(phi, factor, sw, nonneg_phi)
+                    new_factor = True
                     theta = E(rewards) if reward_weights is None else None
                     inv_diag = None
                 if reward_weights is not None:
@@ -194,13 +216,19 @@ def backward_induction(
                                       None if ellip is None else ellip[h + 1], (H - h - 1) * r_max,
                                       check="next" not in checked)
                     if time_homogeneous:
+                        if new_factor:  # the penalty of step h+1's factor, at every next state
+                            pooled_values.set_penalty(penalty, beta, inv_diags[h + 1],
+                                                      None if ellip is None else ellip[h + 1])
+                        new_factor = sw is not None  # the next step's factor, if refactored
                         try:
-                            v_next = qmax(next_phi, next_known, nonneg)
+                            v_next, clipped = pooled_values(weights[h + 1], (H - h - 1) * r_max,
+                                                            step=h)
                         except NonFiniteRows as exc:  # pooled rows: step-major
                             step, k = divmod(exc.index[0], dataset.n_trajectories)
                             raise source.next.nonfinite(step, 0, NonFiniteRows(
                                 (k,) + exc.index[1:], exc.value, exc.known)) from None
-                        next_state_values[h] = v_next
+                        if keep_values:
+                            next_state_values[h] = v_next
                     else:  # written in place: no K-sized temporary
                         v_next = source.next_state_values(h, qmax, out=next_state_values[h])
                     if value_moments:  # only the variance-aware variants need them
@@ -228,10 +256,35 @@ def backward_induction(
                     recorder.record(h, E, factor, sw, known_rows(source.next, h))
                 elif h == 0:  # the one pooled regression, after its last use by a rule
                     recorder.record(0, E, factor, sw, next_known)
+                elif (early_stop and sw is None and reward_weights is None and h < H - 1
+                      and not clipped and not pooled_values.step_dependent
+                      and _same_params(rule, h)
+                      and converged(weights[h], weights[h + 1])):
+                    # a fixed point: steps 0 .. h-1 would see the values of this one
+                    weights[:h], thetas[:h], inv_diags[:h] = weights[h], theta, inv_diag
+                    if keep_values:
+                        next_state_values[:h] = v_next
+                    if ellip is not None:
+                        ellip[:h] = [step_ellip] * h
+                    if value_moments:
+                        moments[:h] = moments[h]
+                    recorder.record(0, E, factor, sw, next_known)
+                    stopped_at = h
+                    break
     finally:
         release()  # the duals' reusable work buffers
+    report = recorder.report()
+    if stopped_at is not None:
+        report = replace(report, stopped_at=stopped_at)
     return FittedModel(weights, thetas, inv_diags, ellip, next_state_values,
-                       moments if value_moments else None, recorder.report())
+                       moments if value_moments else None, report)
+
+
+def _same_params(rule: StepRule, h: int) -> bool:
+    """Whether the rule's per-factor parameters of steps ``0 .. h`` are all step ``h``'s."""
+    ref = rule.factor_params(h)
+    return all(np.array_equal(rule.factor_params(j), ref) if ref is not None
+               else rule.factor_params(j) is None for j in range(h))
 
 
 def _apply_rule(rule: StepRule, E: RidgeExpectation, factor: GramFactor, v, ctx: StepContext):

@@ -29,7 +29,9 @@ class FittedModel:
         penalty; see :meth:`~r2pvi.duals.GramFactor.elliptical_factor`), computed once by the
         fit so that acting never factors a matrix. None when the penalty does not need it.
         With ``time_homogeneous`` every entry is the same object.
-    next_state_values : (H, n) ``V_{h+1}`` at the sampled next states (0 at ``h = H-1``)
+    next_state_values : (H, n) ``V_{h+1}`` at the sampled next states (0 at ``h = H-1``);
+        ``(0, n)`` for a pooled fit (``n = P K`` rows, ``H P K`` numbers) unless the value
+        moments were asked for
     value_moments : (H, d, 2) ``E_h([U, U^2])``, ``U = V_{h+1} / r_max``: the ridge estimates
         of the first two moments of the next-step value, in units of ``r_max`` (finite for any
         finite ``r_max``), under step h's operator (variance-aware variants)

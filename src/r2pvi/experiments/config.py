@@ -228,6 +228,13 @@ _FIGURE_RULES = {
     ("bound-check", "delta"): _real(0.0, 1.0, low_open=True, high_open=True),
     ("rates", "divergences"): _choice("tv", "kl", "chi2"),
     ("bound-check", "divergences"): _choice("tv", "kl", "chi2"),
+    # the noisy CartPole benchmark (r2pvi.experiments.figures.cartpole_protocol)
+    ("cartpole", "episodes"): _count(2),
+    ("cartpole", "centers"): _count(2),
+    ("cartpole", "epsilon"): _UNIT,
+    ("cartpole", "drvil_rhos"): _real(0.0, low_open=True),
+    ("cartpole", "forms"): _choice("pooled", "per-step"),
+    ("cartpole", "estimators"): _choice("PEVI", "R2PVI", "DRPVI", "DRVI-L"),
 }
 
 

@@ -27,10 +27,14 @@ features, :class:`TableNext` for finite MDPs, :class:`MapNext` for stored observ
 feature map, :class:`SparseNext` for sparse rows), and the engine asks for the next-state
 values ``V_{h+1}`` chunk by chunk through :meth:`StepSource.next_state_values`.
 
-The on-disk format (format version 2) is a directory::
+The on-disk format (format version 2; 3 for state features) is a directory::
 
     manifest.json        {"kind": "r2pvi.OfflineDataset", "format_version": 2, ...}
-    phi.npy              (H, K, d)     float32 or float64, step-major
+    phi.npy              (H, K, d)     float32 or float64, step-major, or
+    psi.npy              (H+1, K, m)   state features once per observation and
+    actions.npy          (H, K)        the taken actions' indices (-1: no data): episodes
+                                       of a crossed map, phi and next-state rows in one
+                                       (format version 3, see state_files)
     rewards.npy          (H, K)
     next_phi.npy         (H, K, A, d)  stored next-state features, or
     next_index.npy       (H, K)        next-state indices into
@@ -63,7 +67,9 @@ forms ``next_states`` (:class:`NextStates`, :class:`StoredNext`, :class:`TableNe
 ``observations`` (:class:`MappedField`, :class:`MapNext`), ``format`` (manifest names, atomic
 directories), ``behaviour`` (the behaviour form, ``SIDE_BLOCK``), ``source``
 (:class:`StepSource`), ``checks`` (validation), ``manifest`` (what an open checks),
-``directory`` (:func:`open_directory`, :func:`write_directory`), ``writer``
+``crossed`` (state features: :class:`CrossedField`, :class:`CrossedNext`), ``state_files``
+(their directory files), ``directory`` (:func:`open_directory`, :func:`write_directory`),
+``writer``
 (:class:`DatasetWriter`). This package re-exports their public names; a module-level constant
 is read where it is defined, so change it there (e.g. ``storage.files.MAP_WINDOW``).
 """

@@ -12,13 +12,15 @@ from ..._io import _held_kind, file_error
 from ._finite import file_origin
 from .behaviour import BEHAVIOUR_VERSION, BehaviourNext, RowFile, _next_form, _write_behaviour
 from .checks import check_float32_range, check_map_actions
+from .crossed import CrossedNext
 from .fields import Field, widen_range
 from .files import FileField
 from .format import (
-    FORMAT_VERSION,
+    BASE_FORMAT_VERSION,
     GRAM_FILE,
     KIND,
     MANIFEST,
+    STATE_FORMAT_VERSION,
     SUMS_FILE,
     _add_gram,
     _finish,
@@ -38,6 +40,7 @@ from .next_states import NextStates, StoredNext, TableNext
 from .npy import _write_npy_header, load_npy
 from .observations import MapNext, MappedField
 from .source import StepSource
+from .state_files import STATE, is_state_layout, open_state_features, write_state_features
 
 
 def open_directory(path, feature_map=None) -> StepSource:
@@ -83,15 +86,19 @@ def open_directory(path, feature_map=None) -> StepSource:
     H, K, d, A = (mf[k] for k in ("horizon", "n_trajectories", "n_features", "n_actions"))
     if needs_map:
         check_map_actions(feature_map, A, f"the manifest of {path} says")
-    if mf.get("phi", "stored") == "map":
-        phi: Field = MappedField(field("observations"), field("actions", "iu"), feature_map, d)
+    rewards = field("rewards", dtype=np.float64)
+    kv = field("next_values", dtype=np.float64) if "next_values" in files else None
+    if mf["next"] == STATE:  # psi and actions memory-mapped, every number checked
+        phi: Field = open_state_features(path, mf, field, kv)
+    elif mf.get("phi", "stored") == "map":
+        phi = MappedField(field("observations"), field("actions", "iu"), feature_map, d)
         _probe_map(path, lambda: phi.read(0, 0, 1))
     else:
         phi = features("phi")
-    rewards = field("rewards", dtype=np.float64)
-    kv = field("next_values", dtype=np.float64) if "next_values" in files else None
-    if mf["next"] == "map":
-        nxt: NextStates = MapNext(field("next_observations"), feature_map, A, d, kv)
+    if mf["next"] == STATE:  # the next observations' rows of the same psi
+        nxt: NextStates = CrossedNext(phi.psi, A, kv, mf.get("nonnegative_next_phi"))
+    elif mf["next"] == "map":
+        nxt = MapNext(field("next_observations"), feature_map, A, d, kv)
         _probe_map(path, lambda: nxt.features(0, 0, 1))
     elif mf["next"] == "stored":
         nxt = StoredNext(features("next_phi"), kv, mf.get("nonnegative_next_phi"))
@@ -128,7 +135,9 @@ def open_directory(path, feature_map=None) -> StepSource:
                       sums=sums, reward_range=manifest_range(mf, "reward_range"),
                       reward_noise=_manifest_noise(path, mf),
                       row_sums=manifest_range(mf, "phi_row_sums"),
-                      range_recorded=True,
+                      range_recorded=True, stationary=_manifest_flag(path, mf, "stationary"),
+                      reward_offset=_manifest_offset(path, mf),
+                      checked=("phi", "next") if mf["next"] == STATE else (),
                       stored_files={n: path / files[n] for n in ("gram", "phi_sums")
                                     if n in files})
 
@@ -142,6 +151,24 @@ def _probe_map(path: Path, read) -> None:
             raise
         raise file_error(path / MANIFEST, "n_features", f"disagrees with the feature map: {exc}; "
                          "pass the feature map the dataset was built with") from None
+
+
+def _manifest_flag(path: Path, mf: dict, name: str) -> bool:
+    """A yes/no fact of the manifest (False when not recorded)."""
+    value = mf.get(name, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"{path}: the manifest's {name} must be true or false, got {value!r}; "
+                         "the dataset is damaged")
+    return value
+
+
+def _manifest_offset(path: Path, mf: dict) -> float:
+    """The reward shift of episodes (``reward_offset``; 0 when not recorded)."""
+    c = mf.get("reward_offset", 0.0)
+    if isinstance(c, bool) or not isinstance(c, int | float) or not np.isfinite(c) or c < 0:
+        raise ValueError(f"{path}: the manifest's reward_offset must be a number >= 0, got "
+                         f"{c!r}; the dataset is damaged")
+    return float(c)
 
 
 def _manifest_noise(path: Path, mf: dict) -> float:
@@ -239,13 +266,17 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
 
         phi_kind = "stored"
         row_sums = [np.inf, -np.inf]  # of the stored phi rows' sums (gram_of_stored)
-        if next_form == "behaviour" and (isinstance(source.phi, MappedField) or isinstance(
-                source.next, MapNext | TableNext)):
+        state = is_state_layout(source)
+        if next_form == "behaviour" and (state or isinstance(source.phi, MappedField)
+                                         or isinstance(source.next, MapNext | TableNext)):
             raise ValueError(
                 "next_form='behaviour' applies to stored next-state features; this dataset "
-                "stores observations or next-state indices, which hold no next-state features "
-                "to spare: save it with next_form='full'")
-        if isinstance(source.phi, MappedField):  # store what it is computed from
+                "stores state features once per observation, observations or next-state "
+                "indices, which hold no next-state features to spare: save it with "
+                "next_form='full'")
+        if state:  # psi and actions, written below
+            phi_kind = STATE
+        elif isinstance(source.phi, MappedField):  # store what it is computed from
             phi_kind = "map"
             put("observations", source.phi.observations, source.phi.observations.dtype)
             put("actions", source.phi.actions, source.phi.actions.dtype)
@@ -281,7 +312,14 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
             meta["phi_row_sums"] = [float(row_sums[0]), float(row_sums[1])]
         if source.reward_noise:
             meta["reward_noise"] = source.reward_noise
-        if isinstance(nxt, MapNext):
+        if source.stationary:
+            meta["stationary"] = True
+        if source.reward_offset:
+            meta["reward_offset"] = source.reward_offset
+        if state:
+            kind = STATE
+            write_state_features(source, put, store, meta)
+        elif isinstance(nxt, MapNext):
             kind = "map"
             put("next_observations", nxt.observations, nxt.observations.dtype)
             if nxt.has_known_values:
@@ -323,7 +361,8 @@ def write_directory(source: StepSource, path, *, dtype=None, overwrite=False,
             np.save(tmp / f"extra_{name}.npy", value, allow_pickle=False)
             extras.append(name)
         manifest = {
-            "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
+            "kind": KIND, "layout": "step-major",
+            "format_version": STATE_FORMAT_VERSION if state else BASE_FORMAT_VERSION,
             "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
             "dtype": store.name, "next": kind, "files": files, "shapes": shapes,
             "extras": extras, **meta,

@@ -17,7 +17,13 @@ import numpy as np
 from ..._io import DATASET_DIRECTORY, DATASET_KIND, EMPTY_DIRECTORY, check_replaceable
 from .fields import CHUNK
 
-FORMAT_VERSION = 2
+# The newest format this r2pvi reads. Version 3 adds state features stored once per
+# observation ("phi": "state_features"); a dataset of another kind is still written as
+# version 2 (BASE_FORMAT_VERSION), so readers of version 2 keep reading it, and refuse a
+# state-feature dataset by its version (asking for a newer r2pvi) instead of misreading it.
+FORMAT_VERSION = 3
+BASE_FORMAT_VERSION = 2
+STATE_FORMAT_VERSION = 3
 KIND = DATASET_KIND
 MANIFEST = "manifest.json"
 GRAM_FILE = "gram.npy"  # (H, d, d) float64 Phi_h^T Phi_h of the stored features (optional)

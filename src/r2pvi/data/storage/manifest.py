@@ -20,8 +20,13 @@ from .npy import load_npy
 FIRST_DIRECTORY_VERSION = 2  # format 1 is the legacy single-file .npz
 NEXT_FIELDS = {"stored": ("next_phi",), "table": ("next_index", "next_table"),
                "map": ("next_observations",),
-               "behaviour": ("next_action", "next_rest", "next_side", "next_side_offsets")}
-PHI_FIELDS = {"stored": ("phi",), "map": ("observations", "actions")}
+               "behaviour": ("next_action", "next_rest", "next_side", "next_side_offsets"),
+               "state_features": ()}
+PHI_FIELDS = {"stored": ("phi",), "map": ("observations", "actions"),
+              "state_features": ("psi", "actions")}
+# State features once per observation (storage.state_files): "phi" and "next" both
+# "state_features", n_state_features = m with n_features = n_actions * m.
+STATE = "state_features"
 OPTIONAL_FIELDS = ("next_values", "gram", "phi_sums", "next_table_values")
 # Fields read whole (no entry in "shapes"); the others are streamed by step.
 WHOLE_FIELDS = ("gram", "phi_sums", "next_table", "next_table_values")
@@ -65,7 +70,8 @@ def read_manifest(path: Path) -> dict:
                   f"dataset directory format), got {version!r}")
     if version > FORMAT_VERSION:
         raise file_error(mf, "format_version", f"is {version}: {path} has format version "
-                         f"{version}; this r2pvi reads version {FORMAT_VERSION}: upgrade r2pvi")
+                         f"{version}; this r2pvi reads versions {FIRST_DIRECTORY_VERSION} to "
+                         f"{FORMAT_VERSION}: upgrade r2pvi")
     for key in ("files", "shapes", "next") + COUNTS:
         if key not in header:
             raise bad(key, "is missing")
@@ -77,6 +83,7 @@ def read_manifest(path: Path) -> dict:
     _check_choice(header, "phi", tuple(PHI_FIELDS), bad, "stored")
     _check_choice(header, "dtype", ("float32", "float64"), bad, "float64")
     _check_choice(header, "layout", ("step-major",), bad, "step-major")
+    _check_state_keys(header, version, bad)
     for key in ("nonnegative_phi", "nonnegative_next_phi"):
         if header.get(key) is not None and not isinstance(header[key], bool):
             raise bad(key, f"must be true, false or null, got {header[key]!r}")
@@ -86,6 +93,27 @@ def read_manifest(path: Path) -> dict:
         raise bad("extras", f"must be a list of names (letters, digits, _), got {extras!r}")
     _check_files(path, header, bad)
     return header
+
+
+def _check_state_keys(header, version, bad) -> None:
+    """A state-feature dataset says so in "phi" and "next" both, from format version 3 on,
+    with ``n_state_features`` m and ``n_features = n_actions m``."""
+    state = (header.get("phi") == STATE, header["next"] == STATE)
+    if state[0] != state[1]:
+        raise bad("phi" if state[1] else "next", f"must be {STATE!r} too: 'phi' is "
+                  f"{header.get('phi', 'stored')!r} and 'next' is {header['next']!r}, but state "
+                  "features serve as both")
+    if not state[0]:
+        return
+    if version < 3:
+        raise bad("format_version", f"is {version}, but {STATE!r} datasets have format "
+                  "version 3")
+    m = header.get("n_state_features")
+    if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+        raise bad("n_state_features", f"must be an integer >= 1, got {m!r}")
+    if header["n_features"] != header["n_actions"] * m:
+        raise bad("n_features", f"is {header['n_features']}, but n_actions x n_state_features "
+                  f"= {header['n_actions']} x {m} = {header['n_actions'] * m}")
 
 
 def _check_choice(header, key, choices, bad, default=None):
@@ -120,6 +148,7 @@ def _check_files(path: Path, header: dict, bad) -> None:
     H, K = header["horizon"], header["n_trajectories"]
     d, A = header["n_features"], header["n_actions"]
     expected = {"phi": (H, K, d), "rewards": (H, K), "next_phi": (H, K, A, d),
+                "psi": (H + 1, K, header.get("n_state_features")),
                 "next_values": (H, K, A), "next_index": (H, K), "actions": (H, K),
                 "next_action": (H, K), "next_rest": (H, K, A - 1, d),
                 "next_side_offsets": (H + 1,)}

@@ -42,8 +42,15 @@ class StepSource:
                  nonnegative_phi: bool | None = None, chunk: int = CHUNK, grams=None,
                  sums=None, unit_rows: bool = False, reward_range=None,
                  reward_noise: float = 0.0, row_sums=None, checked=(), stored_files=None,
-                 range_recorded: bool = False):
+                 range_recorded: bool = False, stationary: bool = False,
+                 reward_offset: float = 0.0):
         self.phi, self.rewards, self.next = phi, rewards, nxt
+        # The steps are draws of one stationary environment (OfflineDataset.stationary).
+        self.stationary = bool(stationary)
+        # The shift c added to every reward (episodes with reward_offset): a known next value
+        # (an absorbing state's) holds (H - h - 1) c for the step h of its row. A pooled fit's
+        # step h' uses (H - h' - 1) c there instead (see engine.pooled).
+        self.reward_offset = float(reward_offset)
         self.checked = frozenset(checked)
         if not self.checked <= FIELDS:
             raise ValueError(f"checked must name fields among {sorted(FIELDS)}, got "
@@ -165,6 +172,9 @@ class StepSource:
         views = self.pooled_views(P)
         if views is not None:
             return views
+        crossed = self.pooled_crossed(P)
+        if crossed is not None:
+            return crossed
         steps = [self.step(h) for h in range(P)]
         if any(s[3] is not None for s in steps):
             A = self.n_actions
@@ -192,6 +202,19 @@ class StepSource:
             return None
         rewards = np.asarray(self.rewards.lazy(), dtype=float).reshape(H * K)[:n]
         return phi.reshape(H * K, d)[:n], rewards, nxt[0], nxt[1]
+
+    def pooled_crossed(self, P: int):
+        """:meth:`pooled` of state features stored once per observation
+        (:mod:`~r2pvi.data.storage.crossed`): the taken-action and next-state rows as
+        :class:`~r2pvi.data.storage.crossed.CrossedRows` (views), never formed; None for the
+        other kinds."""
+        rows = getattr(self.phi, "pooled_rows", None)
+        nxt = getattr(self.next, "pooled_rows", None)
+        if rows is None or nxt is None:
+            return None
+        n = P * self.n_trajectories
+        rewards = np.asarray(self.rewards.lazy(), dtype=float).reshape(-1)[:n]
+        return (rows(P), rewards) + nxt(n)
 
     def rewards_step(self, h: int) -> np.ndarray:
         return _as_float64(self.rewards.read(h))
@@ -242,7 +265,8 @@ class StepSource:
         return StepSource(phi, rewards, self.next.take(idx), extras, self.nonnegative_phi,
                           self.chunk, unit_rows=self.unit_rows, reward_noise=self.reward_noise,
                           row_sums=self.phi_row_sums,  # a subset's sums lie in the range
-                          checked=self.checked)  # the same numbers, checked or not
+                          checked=self.checked,  # the same numbers, checked or not
+                          stationary=self.stationary, reward_offset=self.reward_offset)
 
 
 def _check_stored(value: np.ndarray, name: str, what: str, path) -> None:

@@ -14,7 +14,7 @@ from .checks import check_features_chunk, check_reward_noise, step_major, warn_s
 from .fields import _float_dtype, widen_range
 from .files import FileField
 from .format import (
-    FORMAT_VERSION,
+    BASE_FORMAT_VERSION,
     GRAM_FILE,
     KIND,
     SUMS_FILE,
@@ -246,7 +246,7 @@ class DatasetWriter:
                 warn_simplex("phi", fl[0], fl[1], 2)
                 warn_simplex("next_phi", fl[2], fl[3], 2)
             manifest = {
-                "kind": KIND, "format_version": FORMAT_VERSION, "layout": "step-major",
+                "kind": KIND, "format_version": BASE_FORMAT_VERSION, "layout": "step-major",
                 "n_trajectories": K, "horizon": H, "n_features": d, "n_actions": A,
                 "dtype": self.dtype.name, "next": "behaviour" if behaviour else "stored",
                 "files": {**files, "gram": GRAM_FILE, "phi_sums": SUMS_FILE}, "shapes": shapes,

@@ -1,6 +1,7 @@
 """The registry of reproducible figures (``r2pvi reproduce NAME``)."""
 
-from .classic_control import CARTPOLE, MOUNTAINCAR
+from .cartpole_protocol import CARTPOLE
+from .classic_control import MOUNTAINCAR
 from .common import Figure, make_estimator
 from .linear_mdp import FIG1A, FIG1B, FIG1C
 from .put_option import FIG1D, FIG2A, FIG2B, FIG_VA

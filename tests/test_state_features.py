@@ -1,0 +1,221 @@
+"""State features stored once per observation (data.storage.crossed) stand for the dense
+rows exactly, and pooled fits on them (one operator, the penalty formed once, a stop at a
+fixed point) give the numbers of the dense rows and of the full loop."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from r2pvi import DRPVI, PEVI, R2PVI, OfflineDataset
+from r2pvi.data.storage.crossed import CrossedRows, cross_rows
+from r2pvi.engine import backward_induction
+from r2pvi.engine.pooled import CrossedRidgeExpectation, PooledNextValues
+from r2pvi.engine.q import _NextValue
+from r2pvi.features import NormalizedRBF, cross_actions
+
+FAST = settings(max_examples=25, deadline=None)
+
+
+def _episodes(rng, K, obs_dim=2, max_len=7, H=None):
+    """Episodes of random lengths, some terminated, some truncated or longer than H."""
+    eps = []
+    for _ in range(K):
+        T = int(rng.integers(1, max_len + 1))
+        term = np.zeros(T, dtype=bool)
+        trunc = np.zeros(T, dtype=bool)
+        if rng.random() < 0.5:
+            term[-1] = True
+        else:
+            trunc[-1] = True
+        eps.append({"observations": rng.random((T + 1, obs_dim)),
+                    "actions": rng.integers(0, 2, T), "rewards": rng.random(T),
+                    "terminations": term, "truncations": trunc})
+    return eps
+
+
+def _both(eps, H, bins=3, **kw):
+    """The same episodes in the state-feature layout and as dense rows (a plain callable
+    map is not recognised as crossed)."""
+    fmap = cross_actions(NormalizedRBF(n_centers=bins).fit(np.array([[0.0, 0.0], [1.0, 1.0]])),
+                         2)
+    crossed = OfflineDataset.from_episodes(eps, fmap, 2, horizon=H, **kw)
+    dense = OfflineDataset.from_episodes(eps, lambda o, a: fmap(o, a), 2, horizon=H, **kw)
+    return crossed, dense
+
+
+# ---------------------------------------------------------------------- the rows
+@FAST
+@given(n=st.integers(1, 300), m=st.integers(1, 6), A=st.integers(1, 3),
+       k=st.integers(1, 3), weighted=st.booleans(), f32=st.booleans(),
+       seed=st.integers(0, 2**16))
+def test_crossed_rows_products_equal_the_dense_rows(n, m, A, k, weighted, f32, seed):
+    rng = np.random.default_rng(seed)
+    psi = rng.standard_normal((n, m)).astype(np.float32 if f32 else np.float64)
+    acts = rng.integers(-1, A, n)  # -1: empty rows
+    rows = CrossedRows(psi, acts, A, chunk=int(rng.integers(1, 64)))
+    x = cross_rows(psi.astype(float), acts, A)
+    w = rng.random(n) if weighted else None
+    xw = x if w is None else x * w[:, None]
+    y = rng.standard_normal(n)
+    Y = rng.standard_normal((n, k))
+    np.testing.assert_allclose(rows.rmatmul(y, w), xw.T @ y, rtol=1e-12, atol=1e-11)
+    np.testing.assert_allclose(rows.rmatmul(Y, w), xw.T @ Y, rtol=1e-12, atol=1e-11)
+    np.testing.assert_allclose(rows.gram(w), xw.T @ x, rtol=1e-12, atol=1e-11)
+    np.testing.assert_allclose(rows.colsums(w), xw.sum(axis=0), rtol=1e-12, atol=1e-11)
+    np.testing.assert_array_equal(rows.dense(), x)
+    np.testing.assert_array_equal(rows.used(), x.any(axis=1))
+    nxt = CrossedRows(psi, None, A)
+    u = rng.standard_normal(A * m)
+    np.testing.assert_allclose(nxt.action_values(u), cross_rows(psi.astype(float), None, A) @ u,
+                               rtol=1e-12, atol=1e-11)
+
+
+@FAST
+@given(n=st.integers(2, 200), m=st.integers(1, 5), seed=st.integers(0, 2**16))
+def test_crossed_operator_is_the_ridge_regression_of_the_dense_rows(n, m, seed):
+    rng = np.random.default_rng(seed)
+    psi, acts = rng.random((n, m)), rng.integers(-1, 2, n)
+    x = cross_rows(psi, acts, 2)
+    E = CrossedRidgeExpectation(CrossedRows(psi, acts, 2), gamma=0.5)
+    lam = x.T @ x + 0.5 * np.eye(2 * m)
+    y1, y2 = rng.standard_normal(n), rng.standard_normal(n)
+    e1, e2, tot = E.pair_with_total_weights(y1, y2)
+    np.testing.assert_allclose(e1, np.linalg.solve(lam, x.T @ y1), rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(e2, np.linalg.solve(lam, x.T @ y2), rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(tot, np.linalg.solve(lam, x.sum(axis=0)), rtol=1e-9, atol=1e-10)
+    # explicit rows (the rules that need them) are the dense rows
+    np.testing.assert_array_equal(E.phi, x)
+    np.testing.assert_allclose(E(y1), e1, rtol=1e-9, atol=1e-10)
+
+
+@FAST
+@given(kind=st.sampled_from(["l1", "l2", "elliptical"]), beta=st.sampled_from([0.0, 0.7]),
+       known=st.booleans(), seed=st.integers(0, 2**16))
+def test_pooled_next_values_equal_the_per_step_definition(kind, beta, known, seed):
+    rng = np.random.default_rng(seed)
+    n, A, m = 60, 2, 3
+    psi = rng.standard_normal((n, m))
+    acts = rng.integers(0, A, n)
+    E = CrossedRidgeExpectation(CrossedRows(psi, acts, A), gamma=1.0)
+    feats = cross_rows(psi, None, A)
+    kv = None
+    if known:
+        kv = np.full((n, A), np.nan)
+        kv[rng.random(n) < 0.2] = 0.25
+    w = rng.standard_normal(A * m) * 3
+    inv, ellip = E.inverse_diagonal(), E.factor.elliptical_factor()
+    old = _NextValue(w, kind, beta, inv, ellip, 2.0)(feats, kv, False)
+    for rows in (feats, CrossedRows(psi, None, A)):
+        values = PooledNextValues(rows, kv, check=False)
+        values.set_penalty(kind, beta, inv, ellip)
+        v, _ = values(w, 2.0)
+        np.testing.assert_allclose(v, old, rtol=1e-12, atol=1e-12)
+
+
+# ---------------------------------------------------------------------- the dataset
+@FAST
+@given(K=st.integers(1, 12), H=st.integers(1, 9), offset=st.booleans(), seed=st.integers(0, 2**16))
+def test_episode_datasets_in_the_state_layout_hold_the_dense_numbers(K, H, offset, seed):
+    rng = np.random.default_rng(seed)
+    crossed, dense = _both(_episodes(rng, K), H, reward_offset=0.5 if offset else None)
+    assert type(crossed._source.phi).__name__ == "CrossedField"
+    for name in ("phi", "rewards", "next_phi", "next_values", "states", "actions",
+                 "next_states"):
+        np.testing.assert_array_equal(getattr(crossed, name), getattr(dense, name),
+                                      err_msg=name)
+    assert crossed.reward_range == dense.reward_range
+    assert crossed.nonnegative_features == dense.nonnegative_features
+    assert crossed.nonnegative_next_features == dense.nonnegative_next_features
+    idx = rng.permutation(K)[: max(1, K // 2)]
+    for name in ("phi", "next_phi", "next_values"):
+        np.testing.assert_array_equal(getattr(crossed.subset(idx), name),
+                                      getattr(dense.subset(idx), name))
+
+
+ESTIMATORS = [
+    lambda th: R2PVI("tv", lam=0.3, beta=0.1, r_max=1.5, time_homogeneous=th),
+    lambda th: R2PVI("kl", lam=0.5, beta=0.1, r_max=1.5, time_homogeneous=th),
+    lambda th: R2PVI("chi2", lam=1.0, beta=0.1, r_max=1.5, time_homogeneous=th),
+    lambda th: PEVI(beta=0.2, penalty="elliptical", r_max=1.5, time_homogeneous=th),
+    lambda th: DRPVI(rho=0.2, beta=0.1, r_max=1.5, time_homogeneous=th),
+    lambda th: R2PVI("tv", lam=0.3, beta=0.1, r_max=1.5, variance_aware=True,
+                     time_homogeneous=th),
+]
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+@pytest.mark.parametrize("make", ESTIMATORS)
+@pytest.mark.parametrize("pooled", [False, True])
+def test_fits_on_the_state_layout_equal_fits_on_the_dense_rows(make, pooled):
+    rng = np.random.default_rng(3)
+    crossed, dense = _both(_episodes(rng, 40, max_len=12), 10, reward_offset=0.5)
+    a, b = make(pooled).fit(crossed), make(pooled).fit(dense)
+    if pooled:  # other sums of the same numbers
+        np.testing.assert_allclose(a.weights_, b.weights_, rtol=1e-10, atol=1e-10)
+    else:  # the same chunks of the same rows: the same bits
+        np.testing.assert_array_equal(a.weights_, b.weights_)
+
+
+def _engine(est, data, early_stop):
+    """The estimator's pooled engine run, with or without the fixed-point stop."""
+    p = est._validate_common(data)
+    p.update(est._validate_extra(data))
+    return backward_induction(data, est._make_rule(p), beta=p["beta"], gamma=p["gamma"],
+                              penalty=p["penalty"], r_max=p["r_max"], time_homogeneous=True,
+                              early_stop=early_stop)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+@pytest.mark.parametrize("make", ESTIMATORS[:5])
+@pytest.mark.parametrize("layout", [0, 1])
+def test_a_pooled_fit_that_stops_at_a_fixed_point_equals_the_full_loop(make, layout):
+    rng = np.random.default_rng(5)
+    data = _both(_episodes(rng, 60, max_len=30), 40)[layout]
+    est = make(True)
+    full, stop = _engine(est, data, False), _engine(est, data, True)
+    assert full.diagnostics.stopped_at is None
+    np.testing.assert_allclose(stop.weights, full.weights, rtol=1e-9, atol=1e-9)
+
+
+def test_tv_with_lam_below_the_reward_stops_within_a_few_steps_on_a_failure_task():
+    # the failure state is absorbing with value 0 and rewards are 1: TV's target
+    # 1 + lam 1[survives] is exact after two steps, so the weights stop changing
+    rng = np.random.default_rng(0)
+    eps = []
+    for _ in range(80):
+        T = int(rng.integers(5, 30))
+        term = np.zeros(T, dtype=bool)
+        term[-1] = T < 29
+        eps.append({"observations": rng.random((T + 1, 2)), "actions": rng.integers(0, 2, T),
+                    "rewards": np.ones(T), "terminations": term,
+                    "truncations": ~term & (np.arange(T) == T - 1)})
+    data = _both(eps, 30)[0]
+    est = R2PVI("tv", lam=0.1, beta=0.0, r_max=1.0, time_homogeneous=True)
+    stop, full = _engine(est, data, True), _engine(est, data, False)
+    assert stop.diagnostics.stopped_at is not None and stop.diagnostics.stopped_at >= 25
+    np.testing.assert_allclose(stop.weights, full.weights, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(stop.gram_inv_diag, full.gram_inv_diag)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_float32_state_features_fit_like_float32_dense_rows():
+    rng = np.random.default_rng(9)
+    eps = _episodes(rng, 30, max_len=10)
+    a, b = _both(eps, 8, dtype="float32")
+    assert a.dtype == np.float32
+    for pooled in (False, True):
+        x = R2PVI("kl", lam=0.5, beta=0.1, r_max=1.0, time_homogeneous=pooled).fit(a)
+        y = R2PVI("kl", lam=0.5, beta=0.1, r_max=1.0, time_homogeneous=pooled).fit(b)
+        np.testing.assert_allclose(x.weights_, y.weights_, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_per_step_fits_on_the_state_layout_report_what_dense_rows_report():
+    rng = np.random.default_rng(11)
+    crossed, dense = _both(_episodes(rng, 50, max_len=12), 10)
+    a = R2PVI("tv", lam=0.3, time_homogeneous=False).fit(crossed).fit_report_
+    b = R2PVI("tv", lam=0.3, time_homogeneous=False).fit(dense).fit_report_
+    np.testing.assert_array_equal(a.rows, b.rows)
+    np.testing.assert_allclose(a.constant_fit, b.constant_fit, rtol=1e-12)
+    np.testing.assert_array_equal(a.absorbing, b.absorbing)
