@@ -1,0 +1,208 @@
+"""Fitted-Q evaluation of a fitted estimator's greedy policy on held-out trajectories.
+
+The value of the policy ``pi_h(s) = argmax_a Q_h(s, a)`` the estimator acts with (its own
+``Q``: penalty and clip included) is estimated from the held-out data alone, backward over
+the steps: ``V^pi_H = 0`` and, for ``h = H-1, ..., 0``,
+
+    Q^pi_h(s, a) = clip(phi(s, a)^T (theta_h + w_h), 0, (H - h) r_max),
+    v = Q^pi_{h+1}(s', pi_{h+1}(s'))    at the held-out next states s'
+                                        (known next-state values where the data gives them),
+
+with ``theta_h`` the ridge regression of the rewards and ``w_h``
+
+- ``E(v)``, the ridge regression of ``v`` (``robust=False``): the **nominal** value of
+  ``pi`` under the held-out data's dynamics;
+- ``rule(E, v)``, the estimator's own step rule (:meth:`LinearEstimator._make_rule`) applied
+  to the held-out ridge operator, as the fit applies it to the training one (``robust=True``):
+  the **robust (regularized or constrained) value** of ``pi`` under the estimator's
+  uncertainty model around the held-out data's dynamics. For PEVI (no uncertainty set) the
+  rule is a ridge regression kept in the values' range: the nominal value again.
+
+``E`` is one ridge operator (the estimator's ``gamma``) over every held-out transition of
+steps ``0 .. H-2`` when the steps are pooled (stationary data: as a pooled fit), or step
+``h``'s transitions alone per step (the paper's form). No pessimism penalty enters ``Q^pi``:
+it is an evaluation, not a lower bound.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..data import OfflineDataset
+from ..data.storage.crossed import CrossedRows
+from ..data.storage.sparse_rows import flat_rows
+from ..duals import GramFactor
+from ..duals.operator import RidgeExpectation
+from ..engine import StepContext, pooled_steps
+from ..engine.pooled import CrossedRidgeExpectation, converged, next_penalty
+
+__all__ = ["policy_value"]
+
+
+def _action_values(feats, w: np.ndarray) -> np.ndarray:
+    """``phi(s', a)^T w`` at every next state and action ``(n, A)``."""
+    if isinstance(feats, CrossedRows):
+        return feats.action_values(w)
+    flat, lead = flat_rows(feats)
+    return np.asarray(flat @ w).reshape(lead)
+
+
+def _operator(phi, gamma: float, nonneg) -> RidgeExpectation:
+    """The ridge operator of held-out rows (crossed state features: never formed)."""
+    if isinstance(phi, CrossedRows):
+        return CrossedRidgeExpectation(phi, gamma, None, nonneg)
+    return RidgeExpectation(phi, GramFactor(phi, gamma), None, nonneg)
+
+
+class _Rows:
+    """The held-out regressions: one pooled set of rows, or each step's own."""
+
+    def __init__(self, dataset: OfflineDataset, gamma: float, pooled: bool):
+        self.dataset, self.gamma, self.pooled = dataset, float(gamma), pooled
+        self.H, self.K = dataset.horizon, dataset.n_trajectories
+        self.offset = float(dataset._source.reward_offset)
+        self.nonneg = dataset._nonnegative_phi
+        if pooled:
+            phi, rewards, self.feats, known = dataset._source.pooled(pooled_steps(self.H))
+            self.E = _operator(phi, gamma, self.nonneg)
+            self.theta = self.E(np.asarray(rewards, dtype=np.float64))
+            self.rows, self.row_known = None, None
+            if known is not None:  # the rows with a known value (absorbing states): few
+                self.rows = np.flatnonzero(~np.isnan(known).all(axis=1))
+                # without the shift still to come after the row's own step (engine.pooled)
+                steps = self.rows // self.K
+                self.row_known = known[self.rows] - ((self.H - steps - 1)
+                                                     * self.offset)[:, None]
+
+    @property
+    def step_dependent(self) -> bool:
+        """Whether pooled known values change with the step (shifted rewards)."""
+        return bool(self.offset) and self.rows is not None and self.rows.size > 0
+
+    def step(self, h: int):
+        """``(E, theta, next features, known, rows id)`` of step ``h``'s regression:
+        ``known`` is ``(rows, values (n_rows, A))`` of the rows with a known next value, or
+        None; ``rows id`` names the next-state rows (the same for every pooled step)."""
+        if self.pooled:
+            known = None
+            if self.rows is not None and self.rows.size:
+                known = (self.rows, self.row_known + (self.H - h - 1) * self.offset)
+            return self.E, self.theta, self.feats, known, -1
+        phi, r, nphi, known = self.dataset.step(h)
+        E = _operator(phi, self.gamma, self.nonneg)
+        if known is not None:
+            rows = np.flatnonzero(~np.isnan(known).all(axis=1))
+            known = (rows, known[rows]) if rows.size else None
+        return E, E(np.asarray(r, dtype=np.float64)), nphi, known, h
+
+
+class _Policy:
+    """The estimator's greedy actions at the next states of the held-out rows, step by
+    step; its penalty is formed once per distinct fitted factor (every step of a pooled
+    fit shares one)."""
+
+    def __init__(self, est):
+        self.est = est
+        fp = est._fit_params
+        self.kind, self.beta, self.r_max = fp["penalty"], float(fp["beta"]), fp["r_max"]
+        self.H = est.horizon_
+        self._pen_key = None
+        self._pen = None
+
+    def _penalty(self, feats, j: int, feats_id):
+        if self.beta == 0.0:
+            return None
+        est = self.est
+        ellip = None if getattr(est, "_elliptical", None) is None else est._elliptical[j]
+        inv_diag = est.gram_inv_diag_[j]
+        key = self._pen_key
+        same = key is not None and key[0] == feats_id and (
+            key[1] is ellip if self.kind == "elliptical" else np.array_equal(key[2], inv_diag))
+        if not same:
+            self._pen = next_penalty(feats, self.kind, self.beta, inv_diag, ellip)
+            self._pen_key = (feats_id, ellip, inv_diag)
+        return self._pen
+
+    def same(self, j: int, k: int) -> bool:
+        """Whether steps ``j`` and ``k`` act alike (the same weights and penalty)."""
+        est = self.est
+        if not np.array_equal(est.weights_[j], est.weights_[k]):
+            return False
+        if self.beta == 0.0:
+            return True
+        if self.kind == "elliptical":
+            return est._elliptical[j] is est._elliptical[k]
+        return np.array_equal(est.gram_inv_diag_[j], est.gram_inv_diag_[k])
+
+    def actions(self, feats, j: int, known, feats_id) -> np.ndarray:
+        """``argmax_a Q_j(s', a)`` as the estimator acts (clip and known values included;
+        ties to the lowest index)."""
+        q = _action_values(feats, self.est.weights_[j])
+        pen = self._penalty(feats, j, feats_id)
+        if pen is not None:
+            q -= pen
+        np.clip(q, 0.0, (self.H - j) * self.r_max, out=q)
+        if known is not None:
+            rows, values = known
+            q[rows] = np.where(np.isnan(values), q[rows], values)
+        return np.argmax(q, axis=1)
+
+
+def policy_value(est, dataset: OfflineDataset, x0: np.ndarray, *, robust: bool,
+                 pooled: bool) -> float:
+    """The mean initial-state value of ``est``'s greedy policy by fitted-Q evaluation on
+    ``dataset`` (see the module docstring): ``mean_i Q^pi_0(s_i, pi_0(s_i))`` over the
+    initial features ``x0 (n, A, d)``."""
+    H = dataset.horizon
+    r_max = float(est._fit_params["r_max"])
+    rows = _Rows(dataset, est.gamma, pooled)
+    policy = _Policy(est)
+    rule = None
+    if robust:
+        params = est._validate_common(dataset)
+        params.update(est._validate_extra(dataset))
+        rule = est._make_rule(params)
+    w_next = None
+    d = dataset.n_features
+    for h in range(H - 1, -1, -1):
+        E, theta, feats, known, feats_id = rows.step(h)
+        if h == H - 1:
+            w = np.zeros(d)  # V_H = 0: every rule's value of 0 is 0
+            clipped = True
+        else:
+            upper = (H - h - 1) * r_max
+            act = policy.actions(feats, h + 1, known, feats_id)
+            n = act.shape[0]
+            v = _action_values(feats, w_next)[np.arange(n), act]
+            clipped = bool(v.max(initial=-np.inf) >= upper)
+            np.clip(v, 0.0, upper, out=v)
+            if known is not None:
+                k_rows, k_values = known
+                kv = k_values[np.arange(k_rows.size), act[k_rows]]
+                v[k_rows] = np.where(np.isnan(kv), v[k_rows], kv)
+            if rule is None:
+                w = E(v)
+            else:
+                w = rule(E, v, StepContext(h, H, r_max, H * r_max))
+        w_h = theta + w
+        if (pooled and w_next is not None and h >= 1 and not clipped
+                and not rows.step_dependent and converged(w_h, w_next)
+                and _fixed_policy(policy, rule, h)):
+            w_next = w_h  # a fixed point: steps 0 .. h-1 would compute the same weights
+            break
+        w_next = w_h
+    a0 = est.act(x0, 0)
+    q0 = x0[np.arange(x0.shape[0]), a0] @ w_next
+    return float(np.mean(np.clip(q0, 0.0, H * r_max)))
+
+
+def _fixed_policy(policy: _Policy, rule, h: int) -> bool:
+    """Whether steps ``0 .. h`` (their policies at ``1 .. h+1`` and the rule's per-factor
+    parameters) are all step ``h``'s: the remaining pooled steps repeat the same map."""
+    if not all(policy.same(j, h + 1) for j in range(1, h + 1)):
+        return False
+    if rule is None:
+        return True
+    ref = rule.factor_params(h)
+    return all(np.array_equal(rule.factor_params(j), ref) if ref is not None
+               else rule.factor_params(j) is None for j in range(h))
