@@ -197,10 +197,11 @@ def test_the_fixed_point_stop_of_pooled_fqe_changes_no_number(monkeypatch):
     assert len(stops) < 2 * 60  # well before the 80 steps
 
 
-def numpy_per_step_fqe(est, ds, x0):
+def numpy_per_step_fqe(est, ds, x0, gamma=None):
     """Independent per-step FQE: step ``h`` regresses ``r_h + Q^pi_{h+1}(s', pi(s'))`` on
-    its own rows."""
+    its own rows (ridge ``gamma``, the estimator's by default)."""
     H, d = ds.horizon, ds.n_features
+    gamma = est.gamma if gamma is None else gamma
     w = None
     for h in range(H - 1, -1, -1):
         X, y = ds.phi[:, h], ds.rewards[:, h].copy()
@@ -210,7 +211,7 @@ def numpy_per_step_fqe(est, ds, x0):
             rows = np.arange(len(act))
             v = np.clip(nphi[rows, act] @ w, 0.0, (H - h - 1) * est.r_max)
             y += np.where(np.isnan(known[rows, act]), v, known[rows, act])
-        w = np.linalg.solve(X.T @ X + est.gamma * np.eye(d), X.T @ y)
+        w = np.linalg.solve(X.T @ X + gamma * np.eye(d), X.T @ y)
     a0 = est.act(x0, 0)
     return float(np.mean(np.clip(x0[np.arange(len(a0)), a0] @ w, 0.0, H * est.r_max)))
 
@@ -286,8 +287,28 @@ def test_score_form_arguments_are_checked():
         est.score(ds, kind="fqe", pooled="yes")
     with pytest.raises(TypeError, match="pooled must be 'auto'"):
         est.score(ds, kind="fqe", pooled=1)
-    with pytest.raises(ValueError, match="pooled is used by kind='fqe'"):
+    with pytest.raises(ValueError, match="pooled and gamma are used by kind='fqe'"):
         est.score(ds, pooled=True)
-    with pytest.raises(ValueError, match="initial_phi is used by"):
+    with pytest.raises(ValueError, match="pooled and gamma are used by kind='fqe'"):
+        est.score(ds, gamma=0.1)
+    with pytest.raises(ValueError, match="gamma must be"):
+        est.score(ds, kind="fqe", gamma=0.0)
+    with pytest.raises(ValueError, match="initial_phi, pooled and gamma are used by"):
         Scorer("bellman", initial_phi=lambda d: d.initial_features())
     assert repr(Scorer("robust_fqe")) == "Scorer('robust_fqe')"
+    assert repr(Scorer("fqe", gamma=0.01)) == "Scorer('fqe', gamma=0.01)"
+
+
+def test_the_evaluation_ridge_parameter_is_the_estimators_unless_given():
+    """``gamma`` of the score is the evaluation's own: scores of estimators fitted with
+    different ``gamma`` are then comparable (the same regression of the same targets)."""
+    env = stationary_mdp(0, H=5)
+    train, held = env.collect(60, seed=0), env.collect(300, seed=1)
+    x0 = env.features(0)[held.states[:, 0]]
+    a = R2PVI("tv", 0.3, gamma=1.0).fit(train)
+    b = R2PVI("tv", 0.3, gamma=0.1).fit(train)
+    want = numpy_per_step_fqe(a, held, x0, gamma=0.1)
+    assert a.score(held, kind="fqe", initial_phi=x0, gamma=0.1) == pytest.approx(want, rel=1e-9)
+    assert a.score(held, kind="fqe", initial_phi=x0) != pytest.approx(want, rel=1e-6)
+    assert b.score(held, kind="fqe", initial_phi=x0) == b.score(held, kind="fqe",
+                                                                initial_phi=x0, gamma=0.1)

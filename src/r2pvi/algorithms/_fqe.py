@@ -18,7 +18,8 @@ with ``theta_h`` the ridge regression of the rewards and ``w_h``
   uncertainty model around the held-out data's dynamics. For PEVI (no uncertainty set) the
   rule is a ridge regression kept in the values' range: the nominal value again.
 
-``E`` is one ridge operator (the estimator's ``gamma``) over every held-out transition of
+``E`` is one ridge operator (``gamma``: the estimator's unless given) over every held-out
+transition of
 steps ``0 .. H-2`` when the steps are pooled (stationary data: as a pooled fit), or step
 ``h``'s transitions alone per step (the paper's form). No pessimism penalty enters ``Q^pi``:
 it is an evaluation, not a lower bound.
@@ -149,13 +150,14 @@ class _Policy:
 
 
 def policy_value(est, dataset: OfflineDataset, x0: np.ndarray, *, robust: bool,
-                 pooled: bool) -> float:
+                 pooled: bool, gamma: float | None = None) -> float:
     """The mean initial-state value of ``est``'s greedy policy by fitted-Q evaluation on
     ``dataset`` (see the module docstring): ``mean_i Q^pi_0(s_i, pi_0(s_i))`` over the
-    initial features ``x0 (n, A, d)``."""
+    initial features ``x0 (n, A, d)``; ``gamma`` is the evaluation's ridge parameter (None:
+    the estimator's)."""
     H = dataset.horizon
     r_max = float(est._fit_params["r_max"])
-    rows = _Rows(dataset, est.gamma, pooled)
+    rows = _Rows(dataset, est.gamma if gamma is None else gamma, pooled)
     policy = _Policy(est)
     rule = None
     if robust:

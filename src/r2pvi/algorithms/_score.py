@@ -11,7 +11,7 @@ Two scores, both computed from the held-out data alone (no simulator):
     transitions and negated.
 ``"fqe"``
     Fitted-Q evaluation of the estimator's greedy policy ``pi``: backward over the steps,
-    ridge regressions (the estimator's ``gamma``) of ``r_h + Q^pi_{h+1}(s_{h+1},
+    ridge regressions (the estimator's ``gamma`` unless ``gamma`` is given) of ``r_h + Q^pi_{h+1}(s_{h+1},
     pi(s_{h+1}))`` on the held-out taken-action features give ``Q^pi_h = clip(phi^T w^pi_h,
     0, (H - h) r_max)``; the score is the mean of ``Q^pi_0(s_0, pi(s_0))`` over the initial
     states (``initial_phi``: the features of every action there; by default
@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._threads import limit_blas
-from .._validation import as_float_array, check_choice
+from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
 from ._fqe import policy_value
 
@@ -116,7 +116,7 @@ def _pooled(pooled, dataset) -> bool:
 
 
 def fqe_value(est, dataset: OfflineDataset, initial_phi=None, *, robust: bool = False,
-              pooled="auto") -> float:
+              pooled="auto", gamma=None) -> float:
     """Fitted-Q evaluation of the estimator's greedy policy: the mean initial-state value.
 
     Parameters
@@ -137,6 +137,11 @@ def fqe_value(est, dataset: OfflineDataset, initial_phi=None, *, robust: bool = 
         One regression over every held-out transition (True), or one per step (False);
         "auto": pooled for a :attr:`~r2pvi.OfflineDataset.stationary` dataset. It does not
         follow the estimator's own form, so that pooled and per-step fits are scored alike.
+    gamma : float > 0, optional
+        The evaluation's ridge parameter; None: the estimator's ``gamma``. Give one value to
+        score estimators of different ``gamma`` alike. A large ``gamma`` against the
+        features' mass (``sum phi_i^2`` over the held-out rows) pulls the values of rarely
+        visited features to 0: see the user guide's model-selection page.
 
     Returns
     -------
@@ -146,24 +151,27 @@ def fqe_value(est, dataset: OfflineDataset, initial_phi=None, *, robust: bool = 
     _check(est, dataset)
     kind = "robust_fqe" if robust else "fqe"
     x0 = _initial_features(initial_phi, dataset, dataset.n_features, kind)
+    if gamma is not None:
+        gamma = check_scalar(gamma, "gamma", low=0.0, low_inclusive=False)
     with limit_blas():
         return policy_value(est, dataset, x0, robust=bool(robust),
-                            pooled=_pooled(pooled, dataset))
+                            pooled=_pooled(pooled, dataset), gamma=gamma)
 
 
 def score_estimator(est, dataset, kind: str = "bellman", *, initial_phi=None,
-                    pooled="auto") -> float:
+                    pooled="auto", gamma=None) -> float:
     """The score of ``kind`` (higher is better); see :meth:`LinearEstimator.score`."""
     kind = check_choice(kind, "kind", SCORE_KINDS)
     if kind == "bellman":
         if initial_phi is not None:
             raise ValueError("initial_phi is used by kind='fqe' and 'robust_fqe' only; drop "
                              "it for 'bellman'")
-        if not (isinstance(pooled, str) and pooled == "auto"):
-            raise ValueError("pooled is used by kind='fqe' and 'robust_fqe' only; drop it for "
-                             "'bellman'")
+        if not (isinstance(pooled, str) and pooled == "auto") or gamma is not None:
+            raise ValueError("pooled and gamma are used by kind='fqe' and 'robust_fqe' only; "
+                             "drop them for 'bellman'")
         return -bellman_residual(est, dataset)
-    return fqe_value(est, dataset, initial_phi, robust=kind == "robust_fqe", pooled=pooled)
+    return fqe_value(est, dataset, initial_phi, robust=kind == "robust_fqe", pooled=pooled,
+                     gamma=gamma)
 
 
 class Scorer:
@@ -181,6 +189,8 @@ class Scorer:
         ``held_out_dataset.initial_features()``.
     pooled : "auto", True or False, default "auto"
         The evaluation's form (see :func:`fqe_value`).
+    gamma : float > 0, optional
+        The evaluation's ridge parameter (None: each estimator's own).
 
     Examples
     --------
@@ -189,22 +199,27 @@ class Scorer:
     Scorer('bellman')
     """
 
-    def __init__(self, kind: str = "bellman", *, initial_phi=None, pooled="auto"):
+    def __init__(self, kind: str = "bellman", *, initial_phi=None, pooled="auto", gamma=None):
         self.kind = check_choice(kind, "kind", SCORE_KINDS)
         if initial_phi is not None and not callable(initial_phi):
             raise TypeError("initial_phi of a scorer must be a callable held-out dataset -> "
                             "(n, A, d): each fold has its own initial states")
-        if initial_phi is not None and self.kind == "bellman":
-            raise ValueError("initial_phi is used by kind='fqe' and 'robust_fqe' only; drop it "
-                             "for 'bellman'")
+        if self.kind == "bellman" and (initial_phi is not None or gamma is not None
+                                       or not (isinstance(pooled, str) and pooled == "auto")):
+            raise ValueError("initial_phi, pooled and gamma are used by kind='fqe' and "
+                             "'robust_fqe' only; drop them for 'bellman'")
+        if gamma is not None:
+            gamma = check_scalar(gamma, "gamma", low=0.0, low_inclusive=False)
         self.initial_phi = initial_phi
         self.pooled = pooled
+        self.gamma = gamma
 
     def __call__(self, est, dataset, y=None) -> float:
         if self.kind == "bellman":
             return est.score(dataset, kind="bellman")
         return est.score(dataset, kind=self.kind, initial_phi=self.initial_phi,
-                         pooled=self.pooled)
+                         pooled=self.pooled, gamma=self.gamma)
 
     def __repr__(self) -> str:
-        return f"Scorer({self.kind!r})"
+        extra = "" if self.gamma is None else f", gamma={self.gamma!r}"
+        return f"Scorer({self.kind!r}{extra})"

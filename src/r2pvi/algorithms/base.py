@@ -273,7 +273,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
 
     # ------------------------------------------------------------------ scoring
     def score(self, dataset: OfflineDataset, y=None, *, kind: str = "bellman",
-              initial_phi=None, pooled="auto") -> float:
+              initial_phi=None, pooled="auto", gamma=None) -> float:
         """A score of the fitted estimator on held-out trajectories; higher is better.
 
         Parameters
@@ -298,6 +298,9 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             ``"fqe"``/``"robust_fqe"``: one regression over every held-out transition, or
             one per step; "auto" pools a stationary dataset's steps (whatever the form
             the estimator was fitted with, so that both forms are scored alike).
+        gamma : float > 0, optional
+            ``"fqe"``/``"robust_fqe"``: the evaluation's ridge parameter; None: this
+            estimator's ``gamma``.
 
         Returns
         -------
@@ -321,7 +324,8 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         """
         from ._score import score_estimator
 
-        return score_estimator(self, dataset, kind, initial_phi=initial_phi, pooled=pooled)
+        return score_estimator(self, dataset, kind, initial_phi=initial_phi, pooled=pooled,
+                               gamma=gamma)
 
     # ------------------------------------------------------------------ I/O
     def _params_to_json(self) -> tuple[dict, dict]:
