@@ -11,13 +11,13 @@ Two scores, both computed from the held-out data alone (no simulator):
     transitions and negated.
 ``"fqe"``
     Fitted-Q evaluation of the estimator's greedy policy ``pi``: backward over the steps,
-    ridge regressions (the estimator's ``gamma`` unless ``gamma`` is given) of ``r_h + Q^pi_{h+1}(s_{h+1},
-    pi(s_{h+1}))`` on the held-out taken-action features give ``Q^pi_h = clip(phi^T w^pi_h,
-    0, (H - h) r_max)``; the score is the mean of ``Q^pi_0(s_0, pi(s_0))`` over the initial
-    states (``initial_phi``: the features of every action there; by default
-    ``dataset.initial_features()``). One regression over every held-out transition for a
-    stationary dataset (as a pooled fit), one per step otherwise. The nominal value of
-    ``pi``, in the units of the (shifted) rewards.
+    ridge regressions (the estimator's ``gamma`` unless ``gamma`` is given) of
+    ``r_h + Q^pi_{h+1}(s_{h+1}, pi(s_{h+1}))`` on the held-out taken-action features give
+    ``Q^pi_h = clip(phi^T w^pi_h, 0, (H - h) r_max)``; the score is the mean of
+    ``Q^pi_0(s_0, pi(s_0))`` over the initial states (``initial_phi``: the features of every
+    action there; by default ``dataset.initial_features()``). One regression over every
+    held-out transition for a stationary dataset (as a pooled fit), one per step otherwise.
+    The nominal value of ``pi``, in the units of the (shifted) rewards.
 ``"robust_fqe"``
     The same evaluation with the estimator's own step rule in place of the regression of
     the next values: the robust (regularized or constrained) value of ``pi`` under the
