@@ -312,3 +312,29 @@ def test_the_evaluation_ridge_parameter_is_the_estimators_unless_given():
     assert a.score(held, kind="fqe", initial_phi=x0) != pytest.approx(want, rel=1e-6)
     assert b.score(held, kind="fqe", initial_phi=x0) == b.score(held, kind="fqe",
                                                                 initial_phi=x0, gamma=0.1)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")  # tiny per-step fits starve: not the point
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31), penalty=st.sampled_from(["l1", "l2", "elliptical"]),
+       n_episodes=st.sampled_from([3, 40]))
+def test_the_penalty_at_crossed_next_states_is_the_engines(seed, penalty, n_episodes):
+    """The penalty formed from ``psi`` and one action's block of the fitted factor equals
+    the engine's on the dense rows (primal factor with many episodes, dual with few)."""
+    from r2pvi.algorithms._fqe import _penalty_values
+    from r2pvi.engine.pooled import next_penalty
+
+    rng = np.random.default_rng(seed)
+    eps = random_episodes(rng, n_episodes, 5, n_obs=3)
+    fmap = cross_actions(NormalizedRBF(n_centers=2).fit(
+        np.concatenate([e["observations"] for e in eps])), 2)
+    ds = OfflineDataset.from_episodes(eps, fmap, 2, horizon=5, reward_offset="auto")
+    est = R2PVI("tv", 0.5, beta=0.3, penalty=penalty, r_max=1.0,
+                time_homogeneous=False).fit(ds)
+    feats = ds._source.pooled(4)[2]
+    dense = feats.dense()
+    for h in range(5):
+        ellip = None if est._elliptical is None else est._elliptical[h]
+        got = _penalty_values(feats, penalty, 0.3, est.gram_inv_diag_[h], ellip)
+        want = next_penalty(dense, penalty, 0.3, est.gram_inv_diag_[h], ellip)
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)

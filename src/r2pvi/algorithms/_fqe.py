@@ -48,6 +48,34 @@ def _action_values(feats, w: np.ndarray) -> np.ndarray:
     return np.asarray(flat @ w).reshape(lead)
 
 
+def _penalty_values(feats, kind: str, beta: float, inv_diag, ellip) -> np.ndarray:
+    """The estimator's penalty ``Gamma(phi(s', a))`` at every next state and action
+    ``(n, A)``; for crossed rows ``e_a (x) psi`` from ``psi`` and action ``a``'s block of the
+    fitted factor (``A`` times fewer products than the dense rows), else as the engine forms
+    it (:func:`~r2pvi.engine.pooled.next_penalty`)."""
+    r = None if ellip is None else ellip[0]
+    if not isinstance(feats, CrossedRows) or (kind == "elliptical"
+                                              and not isinstance(r, np.ndarray)):
+        return next_penalty(feats, kind, beta, inv_diag, ellip)
+    A, m = feats.n_actions, feats.m
+    out = np.empty((feats.n, A))
+    for s, e, psi in feats.chunks():
+        for a in range(A):
+            blk = slice(a * m, (a + 1) * m)
+            if kind == "l1":
+                out[s:e, a] = np.abs(psi) @ np.sqrt(inv_diag[blk])
+            elif kind == "l2":
+                out[s:e, a] = np.sqrt((psi * psi) @ inv_diag[blk])
+            else:  # ||x||^2_{Lambda^-1} = c0 ||x||^2 + c1 ||R x||^2 (engine.penalty)
+                _, c0, c1 = ellip
+                rx = psi @ r[:, blk].T
+                sq = c1 * np.einsum("ij,ij->i", rx, rx)
+                if c0:
+                    sq += c0 * np.einsum("ij,ij->i", psi, psi)
+                out[s:e, a] = np.sqrt(np.maximum(sq, 0.0))
+    return beta * out
+
+
 def _operator(phi, gamma: float, nonneg) -> RidgeExpectation:
     """The ridge operator of held-out rows (crossed state features: never formed)."""
     if isinstance(phi, CrossedRows):
@@ -120,7 +148,7 @@ class _Policy:
         same = key is not None and key[0] == feats_id and (
             key[1] is ellip if self.kind == "elliptical" else np.array_equal(key[2], inv_diag))
         if not same:
-            self._pen = next_penalty(feats, self.kind, self.beta, inv_diag, ellip)
+            self._pen = _penalty_values(feats, self.kind, self.beta, inv_diag, ellip)
             self._pen_key = (feats_id, ellip, inv_diag)
         return self._pen
 
