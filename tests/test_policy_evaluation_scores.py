@@ -129,23 +129,27 @@ def random_episodes(rng, n, H, n_obs=2, shifted=True, p_end=None):
     return eps
 
 
-def numpy_pooled_fqe(est, ds, x0, robust_lam=None):
+def numpy_pooled_fqe(est, ds, x0, robust_lam=None, evaluation=None, x0_eval=None):
     """Independent pooled FQE on the dense arrays, every step (no fixed-point stop):
     ``Q^pi_h = clip(phi^T (theta + E(v)), 0, (H - h) r_max)``, or TV's
     ``clip(E(min(v, min v + lam)), lower, upper)`` for ``E(v)``; absorbing next states
-    (episodes shifted by ``c``) have value ``(H - h - 1) c`` at step ``h``."""
-    H, d = ds.horizon, ds.n_features
+    (episodes shifted by ``c``) have value ``(H - h - 1) c`` at step ``h``. ``evaluation``:
+    the same episodes with other features to regress on (the policy acts on ``ds``)."""
+    H = ds.horizon
     r_max, c = 1.0, float(ds._source.reward_offset)
     P = max(H - 1, 1)
-    X = ds.phi[:, :P].reshape(-1, d)
-    nphi = ds.next_phi[:, :P].reshape(-1, ds.n_actions, d)
+    own = ds.next_phi[:, :P].reshape(-1, ds.n_actions, ds.n_features)
+    ev = ds if evaluation is None else evaluation
+    d = ev.n_features
+    X = ev.phi[:, :P].reshape(-1, d)
+    nphi = ev.next_phi[:, :P].reshape(-1, ds.n_actions, d)
     absorbing = ~np.isnan(ds.next_values[:, :P].reshape(-1, ds.n_actions))
     lam_inv = np.linalg.inv(X.T @ X + est.gamma * np.eye(d))
     theta = lam_inv @ X.T @ ds.rewards[:, :P].reshape(-1)
     w = theta.copy()  # step H - 1
     for h in range(H - 2, -1, -1):
         known = np.where(absorbing, (H - h - 1) * c, np.nan)
-        act = est.act(nphi, h + 1, known)
+        act = est.act(own, h + 1, known)
         v = np.clip(nphi[np.arange(len(act)), act] @ w, 0.0, (H - h - 1) * r_max)
         v = np.where(absorbing[:, 0], (H - h - 1) * c, v)
         if robust_lam is None:
@@ -154,6 +158,7 @@ def numpy_pooled_fqe(est, ds, x0, robust_lam=None):
             lo, hi = min(0.0, v.min()), max((H - h - 1) * r_max, v.max())
             w = theta + np.clip(lam_inv @ X.T @ np.minimum(v, v.min() + robust_lam), lo, hi)
     a0 = est.act(x0, 0)
+    x0 = x0 if x0_eval is None else x0_eval
     return float(np.mean(np.clip(x0[np.arange(len(a0)), a0] @ w, 0.0, H * r_max)))
 
 
@@ -287,9 +292,9 @@ def test_score_form_arguments_are_checked():
         est.score(ds, kind="fqe", pooled="yes")
     with pytest.raises(TypeError, match="pooled must be 'auto'"):
         est.score(ds, kind="fqe", pooled=1)
-    with pytest.raises(ValueError, match="pooled and gamma are used by kind='fqe'"):
+    with pytest.raises(ValueError, match="pooled, gamma and evaluation_map are used by"):
         est.score(ds, pooled=True)
-    with pytest.raises(ValueError, match="pooled and gamma are used by kind='fqe'"):
+    with pytest.raises(ValueError, match="pooled, gamma and evaluation_map are used by"):
         est.score(ds, gamma=0.1)
     with pytest.raises(ValueError, match="gamma must be"):
         est.score(ds, kind="fqe", gamma=0.0)
@@ -338,3 +343,43 @@ def test_the_penalty_at_crossed_next_states_is_the_engines(seed, penalty, n_epis
         got = _penalty_values(feats, penalty, 0.3, est.gram_inv_diag_[h], ellip)
         want = next_penalty(dense, penalty, 0.3, est.gram_inv_diag_[h], ellip)
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+
+
+def test_fqe_with_an_evaluation_map_regresses_on_its_features_and_acts_on_the_estimators():
+    """Estimators fitted with different maps are scored on one scale: the regressions use
+    the evaluation map's features of the same episodes (an independent dense loop over a
+    dataset built with that map), the greedy actions the estimator's own features."""
+    rng = np.random.default_rng(4)
+    eps = random_episodes(rng, 40, 9, n_obs=2)
+    obs = np.concatenate([e["observations"] for e in eps])
+    own = cross_actions(NormalizedRBF(n_centers=2).fit(obs), 2)
+    fine = cross_actions(NormalizedRBF(n_centers=4).fit(obs), 2)
+    ds = OfflineDataset.from_episodes(eps, own, 2, horizon=9, reward_offset="auto")
+    ds_fine = OfflineDataset.from_episodes(eps, fine, 2, horizon=9, reward_offset="auto")
+    est = R2PVI("tv", 0.5, beta=0.1, r_max=1.0).fit(ds[:25])
+    held, held_fine = ds[25:], ds_fine[25:]
+    got = est.score(held, kind="fqe", evaluation_map=fine, gamma=0.1)
+    want = numpy_pooled_fqe(est, held, held.initial_features(), evaluation=held_fine,
+                            x0_eval=held_fine.initial_features())
+    # numpy_pooled_fqe regresses with est.gamma (1.0): compare at the same ridge
+    assert est.score(held, kind="fqe", evaluation_map=fine, gamma=1.0) == pytest.approx(
+        want, rel=1e-9)
+    assert got != pytest.approx(want, rel=1e-6)
+    # the estimator's own map as the evaluation map: the plain score
+    assert est.score(held, kind="fqe", evaluation_map=own) == pytest.approx(
+        est.score(held, kind="fqe"), rel=1e-10)
+    assert Scorer("fqe", evaluation_map=fine)(est, held) == est.score(
+        held, kind="fqe", evaluation_map=fine)
+    for kw in ({"kind": "robust_fqe"}, {"kind": "fqe", "pooled": False},
+               {"kind": "fqe", "initial_phi": held.initial_features()}):
+        with pytest.raises(ValueError, match="evaluation_map is for kind='fqe' with pooled"):
+            est.score(held, evaluation_map=fine, **kw)
+    with pytest.raises(ValueError, match="crossed with 3 actions"):
+        est.score(held, kind="fqe", evaluation_map=cross_actions(fine.state_map, 3))
+    with pytest.raises(ValueError, match="used by kind='fqe' only"):
+        Scorer("robust_fqe", evaluation_map=fine)
+    env = stationary_mdp(0, H=4)
+    finite = env.collect(30, seed=0)
+    with pytest.raises(ValueError, match="needs a dataset of episodes"):
+        PEVI().fit(finite).score(finite, kind="fqe", evaluation_map=fine, pooled=True,
+                                 initial_phi=None)

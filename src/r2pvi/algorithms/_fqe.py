@@ -30,14 +30,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..data import OfflineDataset
-from ..data.storage.crossed import CrossedRows
+from ..data.storage.crossed import CrossedRows, cross_rows
 from ..data.storage.sparse_rows import flat_rows
 from ..duals import GramFactor
 from ..duals.operator import RidgeExpectation
 from ..engine import StepContext, pooled_steps
 from ..engine.pooled import CrossedRidgeExpectation, converged, next_penalty
+from ..features.maps import as_feature_map
 
-__all__ = ["policy_value"]
+__all__ = ["policy_value", "check_evaluation_dataset"]
 
 
 def _action_values(feats, w: np.ndarray) -> np.ndarray:
@@ -84,15 +85,25 @@ def _operator(phi, gamma: float, nonneg) -> RidgeExpectation:
 
 
 class _Rows:
-    """The held-out regressions: one pooled set of rows, or each step's own."""
+    """The held-out regressions: one pooled set of rows, or each step's own.
 
-    def __init__(self, dataset: OfflineDataset, gamma: float, pooled: bool):
+    With an ``evaluation_map`` (pooled only) the regressions use its features of the same
+    observations (``dataset.states`` and ``dataset.next_states``), while the policy acts on
+    the dataset's own next-state rows (:attr:`policy_feats`)."""
+
+    def __init__(self, dataset: OfflineDataset, gamma: float, pooled: bool,
+                 evaluation_map=None):
         self.dataset, self.gamma, self.pooled = dataset, float(gamma), pooled
         self.H, self.K = dataset.horizon, dataset.n_trajectories
         self.offset = float(dataset._source.reward_offset)
         self.nonneg = dataset._nonnegative_phi
+        self.x0 = None  # the evaluation map's initial features, when there is one
         if pooled:
             phi, rewards, self.feats, known = dataset._source.pooled(pooled_steps(self.H))
+            self.policy_feats = self.feats
+            if evaluation_map is not None:
+                phi, self.feats, self.x0 = _evaluation_rows(dataset, evaluation_map)
+                self.nonneg = None
             self.E = _operator(phi, gamma, self.nonneg)
             self.theta = self.E(np.asarray(rewards, dtype=np.float64))
             self.rows, self.row_known = None, None
@@ -109,20 +120,63 @@ class _Rows:
         return bool(self.offset) and self.rows is not None and self.rows.size > 0
 
     def step(self, h: int):
-        """``(E, theta, next features, known, rows id)`` of step ``h``'s regression:
-        ``known`` is ``(rows, values (n_rows, A))`` of the rows with a known next value, or
-        None; ``rows id`` names the next-state rows (the same for every pooled step)."""
+        """``(E, theta, policy rows, value rows, known, rows id)`` of step ``h``'s
+        regression: the next-state rows the policy acts on and those the values are read
+        from (the same unless an evaluation map is given); ``known`` is ``(rows, values
+        (n_rows, A))`` of the rows with a known next value, or None; ``rows id`` names the
+        next-state rows (the same for every pooled step)."""
         if self.pooled:
             known = None
             if self.rows is not None and self.rows.size:
                 known = (self.rows, self.row_known + (self.H - h - 1) * self.offset)
-            return self.E, self.theta, self.feats, known, -1
+            return self.E, self.theta, self.policy_feats, self.feats, known, -1
         phi, r, nphi, known = self.dataset.step(h)
         E = _operator(phi, self.gamma, self.nonneg)
         if known is not None:
             rows = np.flatnonzero(~np.isnan(known).all(axis=1))
             known = (rows, known[rows]) if rows.size else None
-        return E, E(np.asarray(r, dtype=np.float64)), nphi, known, h
+        return E, E(np.asarray(r, dtype=np.float64)), nphi, nphi, known, h
+
+
+def check_evaluation_dataset(dataset: OfflineDataset) -> None:
+    """Refuse a dataset an evaluation map cannot read (see :func:`_evaluation_rows`)."""
+    if not hasattr(dataset._source.phi, "crossed_step") or dataset.states is None:
+        raise ValueError(
+            "evaluation_map needs a dataset of episodes built with a feature map crossed with "
+            "the actions (OfflineDataset.from_episodes(episodes, cross_actions(map, A), A)): "
+            "it reads the observations and the taken actions of every step")
+
+
+def _evaluation_rows(dataset: OfflineDataset, evaluation_map):
+    """``(taken rows, next rows, initial features (K, A, d'))`` of the pooled steps under
+    ``evaluation_map``, from the observations of a dataset of episodes stored as state
+    features (its taken actions, ``-1`` after an episode's end, give the empty rows)."""
+    check_evaluation_dataset(dataset)
+    phi = dataset._source.phi
+    A, H, K = dataset.n_actions, dataset.horizon, dataset.n_trajectories
+    emap = as_feature_map(evaluation_map, A)
+    if getattr(emap, "n_actions", A) != A:
+        raise ValueError(f"evaluation_map is crossed with {emap.n_actions} actions; the dataset "
+                         f"has A = {A}")
+    if not hasattr(emap, "state_features"):
+        raise TypeError("evaluation_map must be a fitted observation transformer or a map "
+                        "crossed with the actions (r2pvi.features.cross_actions), got "
+                        f"{type(evaluation_map).__name__}")
+    P = pooled_steps(H)
+
+    def psi(obs):
+        flat = np.asarray(obs)
+        out = emap.state_features(flat.reshape((-1,) + flat.shape[2:]))
+        return np.asarray(out.toarray() if hasattr(out, "toarray") else out, dtype=np.float64)
+
+    def step_major(obs):  # (K, P, ...) -> (P K, ...), row h K + k
+        return np.swapaxes(np.asarray(obs)[:, :P], 0, 1)
+
+    actions = np.asarray(phi.actions[:P]).reshape(P * K)
+    taken = CrossedRows(psi(step_major(dataset.states)), actions, A)
+    nxt = CrossedRows(psi(step_major(dataset.next_states)), None, A)
+    x0 = cross_rows(psi(np.asarray(dataset.states)[:, :1]), None, A)
+    return taken, nxt, x0
 
 
 class _Policy:
@@ -178,14 +232,14 @@ class _Policy:
 
 
 def policy_value(est, dataset: OfflineDataset, x0: np.ndarray, *, robust: bool,
-                 pooled: bool, gamma: float | None = None) -> float:
+                 pooled: bool, gamma: float | None = None, evaluation_map=None) -> float:
     """The mean initial-state value of ``est``'s greedy policy by fitted-Q evaluation on
     ``dataset`` (see the module docstring): ``mean_i Q^pi_0(s_i, pi_0(s_i))`` over the
     initial features ``x0 (n, A, d)``; ``gamma`` is the evaluation's ridge parameter (None:
-    the estimator's)."""
+    the estimator's); ``evaluation_map`` (pooled, nominal) regresses on its own features."""
     H = dataset.horizon
     r_max = float(est._fit_params["r_max"])
-    rows = _Rows(dataset, est.gamma if gamma is None else gamma, pooled)
+    rows = _Rows(dataset, est.gamma if gamma is None else gamma, pooled, evaluation_map)
     policy = _Policy(est)
     rule = None
     if robust:
@@ -193,15 +247,14 @@ def policy_value(est, dataset: OfflineDataset, x0: np.ndarray, *, robust: bool,
         params.update(est._validate_extra(dataset))
         rule = est._make_rule(params)
     w_next = None
-    d = dataset.n_features
     for h in range(H - 1, -1, -1):
-        E, theta, feats, known, feats_id = rows.step(h)
+        E, theta, policy_feats, feats, known, feats_id = rows.step(h)
         if h == H - 1:
-            w = np.zeros(d)  # V_H = 0: every rule's value of 0 is 0
+            w = np.zeros_like(theta)  # V_H = 0: every rule's value of 0 is 0
             clipped = True
         else:
             upper = (H - h - 1) * r_max
-            act = policy.actions(feats, h + 1, known, feats_id)
+            act = policy.actions(policy_feats, h + 1, known, feats_id)
             n = act.shape[0]
             v = _action_values(feats, w_next)[np.arange(n), act]
             clipped = bool(v.max(initial=-np.inf) >= upper)
@@ -222,6 +275,7 @@ def policy_value(est, dataset: OfflineDataset, x0: np.ndarray, *, robust: bool,
             break
         w_next = w_h
     a0 = est.act(x0, 0)
+    x0 = x0 if rows.x0 is None else rows.x0
     q0 = x0[np.arange(x0.shape[0]), a0] @ w_next
     return float(np.mean(np.clip(q0, 0.0, H * r_max)))
 

@@ -34,7 +34,7 @@ import numpy as np
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
-from ._fqe import policy_value
+from ._fqe import check_evaluation_dataset, policy_value
 
 __all__ = ["SCORE_KINDS", "bellman_residual", "fqe_value", "Scorer", "score_estimator"]
 
@@ -116,7 +116,7 @@ def _pooled(pooled, dataset) -> bool:
 
 
 def fqe_value(est, dataset: OfflineDataset, initial_phi=None, *, robust: bool = False,
-              pooled="auto", gamma=None) -> float:
+              pooled="auto", gamma=None, evaluation_map=None) -> float:
     """Fitted-Q evaluation of the estimator's greedy policy: the mean initial-state value.
 
     Parameters
@@ -142,6 +142,13 @@ def fqe_value(est, dataset: OfflineDataset, initial_phi=None, *, robust: bool = 
         score estimators of different ``gamma`` alike. A large ``gamma`` against the
         features' mass (``sum phi_i^2`` over the held-out rows) pulls the values of rarely
         visited features to 0: see the user guide's model-selection page.
+    evaluation_map : feature map, optional
+        Nominal, pooled FQE only: regress on this map's features of the same observations
+        (a map crossed with the actions, or a fitted observation transformer) instead of
+        the dataset's own, while the policy acts on the dataset's; the initial states are
+        the dataset's. One evaluation map scores estimators fitted with different maps on
+        one scale. Needs a dataset of episodes stored as state features
+        (:meth:`~r2pvi.OfflineDataset.from_episodes` with a crossed map).
 
     Returns
     -------
@@ -150,28 +157,37 @@ def fqe_value(est, dataset: OfflineDataset, initial_phi=None, *, robust: bool = 
     """
     _check(est, dataset)
     kind = "robust_fqe" if robust else "fqe"
+    pooled = _pooled(pooled, dataset)
+    if evaluation_map is not None and (robust or not pooled or initial_phi is not None):
+        raise ValueError(
+            "evaluation_map is for kind='fqe' with pooled steps (a stationary dataset, or "
+            "pooled=True) at the dataset's own initial states: drop initial_phi, use "
+            "kind='fqe'")
+    if evaluation_map is not None:
+        check_evaluation_dataset(dataset)
     x0 = _initial_features(initial_phi, dataset, dataset.n_features, kind)
     if gamma is not None:
         gamma = check_scalar(gamma, "gamma", low=0.0, low_inclusive=False)
     with limit_blas():
-        return policy_value(est, dataset, x0, robust=bool(robust),
-                            pooled=_pooled(pooled, dataset), gamma=gamma)
+        return policy_value(est, dataset, x0, robust=bool(robust), pooled=pooled,
+                            gamma=gamma, evaluation_map=evaluation_map)
 
 
 def score_estimator(est, dataset, kind: str = "bellman", *, initial_phi=None,
-                    pooled="auto", gamma=None) -> float:
+                    pooled="auto", gamma=None, evaluation_map=None) -> float:
     """The score of ``kind`` (higher is better); see :meth:`LinearEstimator.score`."""
     kind = check_choice(kind, "kind", SCORE_KINDS)
     if kind == "bellman":
         if initial_phi is not None:
             raise ValueError("initial_phi is used by kind='fqe' and 'robust_fqe' only; drop "
                              "it for 'bellman'")
-        if not (isinstance(pooled, str) and pooled == "auto") or gamma is not None:
-            raise ValueError("pooled and gamma are used by kind='fqe' and 'robust_fqe' only; "
-                             "drop them for 'bellman'")
+        if (not (isinstance(pooled, str) and pooled == "auto") or gamma is not None
+                or evaluation_map is not None):
+            raise ValueError("pooled, gamma and evaluation_map are used by kind='fqe' and "
+                             "'robust_fqe' only; drop them for 'bellman'")
         return -bellman_residual(est, dataset)
     return fqe_value(est, dataset, initial_phi, robust=kind == "robust_fqe", pooled=pooled,
-                     gamma=gamma)
+                     gamma=gamma, evaluation_map=evaluation_map)
 
 
 class Scorer:
@@ -191,6 +207,8 @@ class Scorer:
         The evaluation's form (see :func:`fqe_value`).
     gamma : float > 0, optional
         The evaluation's ridge parameter (None: each estimator's own).
+    evaluation_map : feature map, optional
+        ``"fqe"``: one map to evaluate every candidate with (see :func:`fqe_value`).
 
     Examples
     --------
@@ -199,8 +217,11 @@ class Scorer:
     Scorer('bellman')
     """
 
-    def __init__(self, kind: str = "bellman", *, initial_phi=None, pooled="auto", gamma=None):
+    def __init__(self, kind: str = "bellman", *, initial_phi=None, pooled="auto", gamma=None,
+                 evaluation_map=None):
         self.kind = check_choice(kind, "kind", SCORE_KINDS)
+        if evaluation_map is not None and self.kind != "fqe":
+            raise ValueError("evaluation_map is used by kind='fqe' only")
         if initial_phi is not None and not callable(initial_phi):
             raise TypeError("initial_phi of a scorer must be a callable held-out dataset -> "
                             "(n, A, d): each fold has its own initial states")
@@ -213,13 +234,17 @@ class Scorer:
         self.initial_phi = initial_phi
         self.pooled = pooled
         self.gamma = gamma
+        self.evaluation_map = evaluation_map
 
     def __call__(self, est, dataset, y=None) -> float:
         if self.kind == "bellman":
             return est.score(dataset, kind="bellman")
         return est.score(dataset, kind=self.kind, initial_phi=self.initial_phi,
-                         pooled=self.pooled, gamma=self.gamma)
+                         pooled=self.pooled, gamma=self.gamma,
+                         evaluation_map=self.evaluation_map)
 
     def __repr__(self) -> str:
         extra = "" if self.gamma is None else f", gamma={self.gamma!r}"
+        if self.evaluation_map is not None:
+            extra += f", evaluation_map={self.evaluation_map!r}"
         return f"Scorer({self.kind!r}{extra})"

@@ -273,7 +273,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
 
     # ------------------------------------------------------------------ scoring
     def score(self, dataset: OfflineDataset, y=None, *, kind: str = "bellman",
-              initial_phi=None, pooled="auto", gamma=None) -> float:
+              initial_phi=None, pooled="auto", gamma=None, evaluation_map=None) -> float:
         """A score of the fitted estimator on held-out trajectories; higher is better.
 
         Parameters
@@ -301,6 +301,10 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         gamma : float > 0, optional
             ``"fqe"``/``"robust_fqe"``: the evaluation's ridge parameter; None: this
             estimator's ``gamma``.
+        evaluation_map : feature map, optional
+            ``"fqe"`` with pooled steps: regress on this map's features of the held-out
+            observations (the policy still acts on this estimator's): one scale for
+            estimators fitted with different maps.
 
         Returns
         -------
@@ -325,7 +329,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         from ._score import score_estimator
 
         return score_estimator(self, dataset, kind, initial_phi=initial_phi, pooled=pooled,
-                               gamma=gamma)
+                               gamma=gamma, evaluation_map=evaluation_map)
 
     # ------------------------------------------------------------------ I/O
     def _params_to_json(self) -> tuple[dict, dict]:
