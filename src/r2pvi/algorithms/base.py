@@ -273,7 +273,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
 
     # ------------------------------------------------------------------ scoring
     def score(self, dataset: OfflineDataset, y=None, *, kind: str = "bellman",
-              initial_phi=None) -> float:
+              initial_phi=None, pooled="auto", gamma=None, evaluation_map=None) -> float:
         """A score of the fitted estimator on held-out trajectories; higher is better.
 
         Parameters
@@ -282,14 +282,29 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             Held-out trajectories (``dataset[test_indices]``), with the fitted H and d.
         y : None
             Ignored (scikit-learn's signature).
-        kind : {"bellman", "fqe"}, default "bellman"
+        kind : {"bellman", "fqe", "robust_fqe"}, default "bellman"
             ``"bellman"``: minus the mean squared nominal Bellman residual
             ``(Q_h(s, a) - r - V_{h+1}(s'))^2`` of the fitted ``Q`` over the held-out
             transitions (0 is a perfect fit). ``"fqe"``: fitted-Q evaluation of the greedy
             policy's mean initial-state value on the held-out data (rewards' units).
+            ``"robust_fqe"``: the same with the estimator's own step rule in place of the
+            regression of the next values, i.e. the policy's robust value under the
+            estimator's uncertainty model (see :mod:`r2pvi.algorithms._fqe`).
         initial_phi : array_like (n, A, d) or callable, optional
-            ``"fqe"`` only (required there): features of every action at the initial
-            states, or ``initial_phi(dataset) -> (n, A, d)``.
+            ``"fqe"``/``"robust_fqe"`` only: features of every action at the initial
+            states, or ``initial_phi(dataset) -> (n, A, d)``; None takes
+            ``dataset.initial_features()`` (datasets of episodes hold them).
+        pooled : "auto", True or False, default "auto"
+            ``"fqe"``/``"robust_fqe"``: one regression over every held-out transition, or
+            one per step; "auto" pools a stationary dataset's steps (whatever the form
+            the estimator was fitted with, so that both forms are scored alike).
+        gamma : float > 0, optional
+            ``"fqe"``/``"robust_fqe"``: the evaluation's ridge parameter; None: this
+            estimator's ``gamma``.
+        evaluation_map : feature map, optional
+            ``"fqe"`` with pooled steps: regress on this map's features of the held-out
+            observations (the policy still acts on this estimator's): one scale for
+            estimators fitted with different maps.
 
         Returns
         -------
@@ -313,7 +328,8 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         """
         from ._score import score_estimator
 
-        return score_estimator(self, dataset, kind, initial_phi=initial_phi)
+        return score_estimator(self, dataset, kind, initial_phi=initial_phi, pooled=pooled,
+                               gamma=gamma, evaluation_map=evaluation_map)
 
     # ------------------------------------------------------------------ I/O
     def _params_to_json(self) -> tuple[dict, dict]:

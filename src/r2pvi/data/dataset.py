@@ -228,6 +228,43 @@ class OfflineDataset:
     def _extras(self) -> dict:
         return self._source.extras
 
+    def initial_features(self) -> np.ndarray | None:
+        """Features ``phi(s_0, a)`` of every action at each trajectory's initial state,
+        ``(K, A, d)`` float64, when the dataset holds them; else None.
+
+        Held by datasets of episodes stored as state features (:meth:`from_episodes` with a
+        feature map crossed with the actions: ``psi(s_0)`` crossed with every action) and by
+        observations with a feature map (:meth:`from_observations`: the map at the first
+        observations). The other layouts store only the taken action's features, not every
+        action's at ``s_0``. It is what the estimators' ``score(kind="fqe")`` averages over by
+        default.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from r2pvi import OfflineDataset
+        >>> from r2pvi.features import StateAggregation, cross_actions
+        >>> ep = {"observations": [[0.2], [0.9]], "actions": [1], "rewards": [1.0],
+        ...       "terminations": [True], "truncations": [False]}
+        >>> fmap = cross_actions(StateAggregation(n_bins=2).fit([[0.0], [1.0]]), 2)
+        >>> OfflineDataset.from_episodes([ep], fmap, 2).initial_features().tolist()  # (K, A, d)
+        [[[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]]
+        >>> print(OfflineDataset.from_features(np.ones((1, 1, 2)) / 2, [[1.0]],
+        ...                                    np.ones((1, 1, 2, 2)) / 2).initial_features())
+        None
+        """
+        phi = self._source.phi
+        if hasattr(phi, "crossed_step"):  # state features psi once per observation
+            from .storage.crossed import cross_rows
+
+            return cross_rows(np.asarray(phi.psi[0], dtype=np.float64), None, phi.n_actions)
+        if hasattr(phi, "feature_map") and hasattr(phi, "observations"):
+            obs = phi.observations.read(0)
+            n = obs.shape[0]
+            return np.stack([np.asarray(phi.feature_map(obs, np.full(n, a)), dtype=np.float64)
+                             for a in range(self.n_actions)], axis=1)
+        return None
+
     def step(self, h: int):
         """Step-``h`` arrays ``(phi (K,d), rewards (K,), next_phi (K,A,d), next_values)``.
 
