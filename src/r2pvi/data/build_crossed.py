@@ -48,8 +48,8 @@ def state_features(fmap, observations: np.ndarray, dtype) -> np.ndarray | None:
     return out
 
 
-def crossed_episodes(cls, fmap, eps, lengths, h_idx, k_idx, acts, rewards, absorbing,
-                     offset, K, H, A, check_simplex, dtype):
+def crossed_episodes(cls, fmap, eps, lengths, h_idx, k_idx, cur, nxt, acts, rewards,
+                     absorbing, offset, K, H, A, check_simplex, dtype):
     """The dataset of episodes ``eps`` (validated arrays) in the state-feature layout, or
     None when the observation map gives sparse rows. ``rewards`` are shifted already."""
     dtype = np.dtype(np.float64 if dtype is None else dtype)
@@ -81,18 +81,14 @@ def crossed_episodes(cls, fmap, eps, lengths, h_idx, k_idx, acts, rewards, absor
     # Padding: a step's empty rows repeat the next state of the first episode that reaches
     # it (their next observation's slot is free: the episode has ended before it).
     real = actions >= 0
-    for h in np.flatnonzero(~real.all(axis=1)):
-        have = np.flatnonzero(real[h])
-        if have.size == 0:
-            continue
-        src, pad = have[0], ~real[h]
+    for h, src, pad in padded_steps(real):
         psi[h + 1, pad] = psi[h + 1, src]
         known[h, pad] = known[h, src]
     any_known = bool((~np.isnan(known[: H - 1])).any())
     used_next = psi[1:H]  # the next states of steps 0 .. H-2 (the last step's are not data)
     nonneg_next = bool((used_next >= 0).all())
     nonneg_phi = bool((psi[:H][real] >= 0).all())
-    extras = _episode_extras(eps, lengths, h_idx, k_idx, acts, K, H)
+    extras = episode_extras(cur, nxt, h_idx, k_idx, acts, K, H)
     for a in (psi, actions, rew, known):
         a.flags.writeable = False
     source = _st.StepSource(
@@ -104,25 +100,30 @@ def crossed_episodes(cls, fmap, eps, lengths, h_idx, k_idx, acts, rewards, absor
     return cls(_source=source)
 
 
-def _episode_extras(eps, lengths, h_idx, k_idx, acts, K, H) -> dict:
-    """``states``, ``actions`` and ``next_states`` ``(K, H, ...)`` as the dense layout keeps
-    them (zeros after an episode's end; a padded next state repeats the first episode's that
-    reaches the step)."""
-    obs_shape = eps[0][0].shape[1:]
-    cur = np.concatenate([e[0][:n] for e, n in zip(eps, lengths, strict=True)])
-    nxt = np.concatenate([e[0][1:n + 1] for e, n in zip(eps, lengths, strict=True)])
-    states = np.zeros((K, H) + obs_shape, dtype=cur.dtype)
-    next_states = np.zeros((K, H) + obs_shape, dtype=cur.dtype)
+def padded_steps(real: np.ndarray):
+    """``(h, src, pad)`` for every step ``h`` with empty rows (``real (H, K)`` False) that some
+    episode reaches: ``pad`` masks the empty rows, ``src`` is the first episode with a real
+    transition there, whose next state the empty rows repeat (see :mod:`r2pvi.data.episodes`)."""
+    for h in np.flatnonzero(~real.all(axis=1)):
+        have = np.flatnonzero(real[h])
+        if have.size:
+            yield h, have[0], ~real[h]
+
+
+def episode_extras(cur, nxt, h_idx, k_idx, acts, K, H) -> dict:
+    """``states``, ``actions`` and ``next_states`` ``(K, H, ...)`` from the flattened real
+    steps (zeros after an episode's end; a padded next state repeats the first episode's that
+    reaches the step), read-only."""
+    states = np.zeros((K, H) + cur.shape[1:], dtype=cur.dtype)
+    next_states = np.zeros((K, H) + cur.shape[1:], dtype=cur.dtype)
     actions = np.zeros((K, H), dtype=np.int64)
     states[k_idx, h_idx] = cur
     next_states[k_idx, h_idx] = nxt
     actions[k_idx, h_idx] = acts
     real = np.zeros((H, K), dtype=bool)
     real[h_idx, k_idx] = True
-    for h in np.flatnonzero(~real.all(axis=1)):
-        have = np.flatnonzero(real[h])
-        if have.size:
-            next_states[~real[h], h] = next_states[have[0], h]
+    for h, src, pad in padded_steps(real):
+        next_states[pad, h] = next_states[src, h]
     out = {}
     for name, value in (("states", states), ("actions", actions),
                         ("next_states", next_states)):

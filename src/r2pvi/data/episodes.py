@@ -40,7 +40,7 @@ import scipy.sparse as sp
 
 from ..features.maps import ActionCrossing, as_feature_map
 from .build import _check_map_actions, check_simplex_features
-from .build_crossed import crossed_episodes
+from .build_crossed import crossed_episodes, episode_extras, padded_steps
 from .build_sparse import sparse_episodes
 from .storage.fields import _float_dtype
 
@@ -267,8 +267,8 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
     if dtype is not None:
         dtype = _float_dtype(dtype)
     if isinstance(fmap, ActionCrossing):  # psi once per observation, unless sparse rows
-        ds = crossed_episodes(cls, fmap, eps, lengths, h_idx, k_idx, acts, rews + offset,
-                              absorbing, offset, K, H, A, check_simplex, dtype)
+        ds = crossed_episodes(cls, fmap, eps, lengths, h_idx, k_idx, cur, nxt, acts,
+                              rews + offset, absorbing, offset, K, H, A, check_simplex, dtype)
         if ds is not None:
             return ds
     phi_flat = fmap(cur, acts)
@@ -296,27 +296,16 @@ def from_episodes(cls, episodes, feature_map, n_actions: int, horizon: int | Non
     next_values = np.full((H, K, A), np.nan)
     # Absorbing state after termination: value (H - h - 1) * offset (0 without an offset).
     next_values[h_idx[absorbing], k_idx[absorbing]] = (H - h_idx[absorbing] - 1)[:, None] * offset
-    states = np.zeros((K, H) + obs_shape, dtype=cur.dtype)
-    next_states = np.zeros((K, H) + obs_shape, dtype=cur.dtype)
-    actions = np.zeros((K, H), dtype=np.int64)
-    states[k_idx, h_idx] = cur
-    next_states[k_idx, h_idx] = nxt
-    actions[k_idx, h_idx] = acts
-    # Padding: repeat a real next state of the same step (see the module docstring).
+    extras = episode_extras(cur, nxt, h_idx, k_idx, acts, K, H)
     real = np.zeros((H, K), dtype=bool)
     real[h_idx, k_idx] = True
-    for h in np.flatnonzero(~real.all(axis=1)):
-        have = np.flatnonzero(real[h])
-        if have.size == 0:
-            continue  # no episode reaches step h: every row is empty
-        src, pad = have[0], ~real[h]
+    for h, src, pad in padded_steps(real):  # repeat a real next state (module docstring)
         next_phi[h, pad] = next_phi[h, src]
         next_values[h, pad] = next_values[h, src]
-        next_states[pad, h] = next_states[src, h]
     ds = cls.from_features(
         phi.transpose(1, 0, 2), rewards.T, next_phi.transpose(1, 0, 2, 3),
         next_values.transpose(1, 0, 2), check_simplex=False, dtype=dtype,
-        states=states, actions=actions, next_states=next_states,
+        **extras,
     )
     # draws of one environment: the pooled form by default
     ds._source.stationary, ds._source.reward_offset = True, offset
