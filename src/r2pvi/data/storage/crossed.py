@@ -83,6 +83,7 @@ class CrossedRows:
         self.n_actions = int(n_actions)
         self.n, self.m = psi.shape
         self.chunk = int(chunk)
+        self._hot = None  # the actions one-hot (n, A), formed by the first regression
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -113,7 +114,7 @@ class CrossedRows:
     def _onehot(self) -> np.ndarray:
         """``(n, A)`` float64: 1 in the column of each row's action (none for ``-1``), formed
         once (``8 A`` bytes a row)."""
-        if getattr(self, "_hot", None) is None:
+        if self._hot is None:
             hot = np.zeros((self.n, self.n_actions))
             used = np.flatnonzero(self.actions >= 0)
             hot[used, self.actions[used]] = 1.0
