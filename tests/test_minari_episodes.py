@@ -2,6 +2,7 @@
 
 
 import re
+import sys
 
 import numpy as np
 import pytest
@@ -101,10 +102,10 @@ def _guide_block(marker):
 @pytest.mark.filterwarnings("ignore::UserWarning")
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_minari_data_collector_path_of_the_guide_runs_and_fits(minari, capsys):
-    # Minari's DataCollector needs jax (minari[create], ~380 MB installed), which no r2pvi
-    # extra brings: this runs where jax is installed and is skipped elsewhere, CI included.
+    # Minari's DataCollector needs jax: r2pvi's minari-collect extra (part of the test
+    # extra) brings it, so CI runs this; elsewhere it is skipped with the install line.
     pytest.importorskip("jax", reason="Minari's DataCollector needs jax: pip install "
-                        "'minari[create]' (not in r2pvi's test extra)")
+                        "'.[minari-collect]'")
     namespace = {}
     exec(compile(_guide_block("minari.DataCollector("), "your-own-task.md", "exec"),  # noqa: S102
          namespace)
@@ -116,15 +117,14 @@ def test_minari_data_collector_path_of_the_guide_runs_and_fits(minari, capsys):
 
 
 
-def test_minari_data_collector_without_jax_fails_as_the_guide_says(minari):
-    # The guide sends DataCollector users to minari[create] because of this error; if Minari
-    # stops needing jax, this fails and the guide (and the minari extra) should change.
-    import importlib.util
-
+def test_minari_data_collector_without_jax_fails_as_the_guide_says(minari, monkeypatch):
+    # The guide sends DataCollector users to the minari-collect extra because of this error;
+    # jax is hidden (an import of it fails) so this runs whether or not jax is installed. If
+    # Minari stops needing jax, this fails and the guide (and the extra) should change.
     import gymnasium as gym
 
-    if importlib.util.find_spec("jax") is not None:
-        pytest.skip("jax is installed: the DataCollector test above runs instead")
+    monkeypatch.setitem(sys.modules, "jax", None)
+    monkeypatch.setitem(sys.modules, "jax.numpy", None)
     env = minari.DataCollector(gym.make("CartPole-v1"))
     env.reset(seed=0)
     with pytest.raises(ImportError, match="jax is not installed"):
