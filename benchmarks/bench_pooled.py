@@ -39,7 +39,8 @@ from pathlib import Path
 ESTIMATORS = {
     "tv": "R2PVI('tv', lam=0.1, beta=0.1, r_max=1.0, time_homogeneous=True)",
     "kl": "R2PVI('kl', lam=0.1, beta=0.1, r_max=1.0, time_homogeneous=True)",
-    "chi2": "R2PVI('chi2', lam=1.0, beta=0.1, r_max=1.0, time_homogeneous=True)",
+    "chi2": "R2PVI('chi2', lam=0.3, beta=0.1, r_max=1.0, time_homogeneous=True)",
+    "chi2-lam1": "R2PVI('chi2', lam=1.0, beta=0.1, r_max=1.0, time_homogeneous=True)",
     "pevi": "PEVI(beta=0.1, r_max=1.0, time_homogeneous=True)",
     "drpvi": "DRPVI(rho=0.1, beta=0.1, r_max=1.0, time_homogeneous=True)",
     "drvil": "DRVIL(rho=0.1, beta=0.1, r_max=1.0, time_homogeneous=True)",

@@ -90,6 +90,42 @@ def test_crossed_operator_is_the_ridge_regression_of_the_dense_rows(n, m, seed):
 
 
 @FAST
+@given(n=st.integers(1, 200), m=st.integers(1, 5), A=st.integers(1, 3),
+       moments=st.sampled_from([2, 3]), group=st.sampled_from([1, 2, 5]),
+       extra=st.integers(0, 3), weighted=st.booleans(), f32=st.booleans(),
+       seed=st.integers(0, 2**16))
+def test_crossed_sorted_blocks_equal_the_sorted_blocks_of_the_dense_rows(
+        n, m, A, moments, group, extra, weighted, f32, seed):
+    # signed psi, empty rows (-1), ties in the values, extra breakpoints, sample weights: the
+    # block sums, their |M| bounds, the refined sums and the exact weights of (factor, block)
+    # pairs, without forming the rows, equal those of the dense rows' ridge operator
+    rng = np.random.default_rng(seed)
+    psi = rng.standard_normal((n, m)).astype(np.float32 if f32 else np.float64)
+    acts = rng.integers(-1, A, n)
+    w = rng.random(n) + 0.1 if weighted else None
+    crossed = CrossedRidgeExpectation(CrossedRows(psi, acts, A), gamma=0.7, weights=w)
+    dense = CrossedRidgeExpectation(CrossedRows(psi, acts, A), gamma=0.7, weights=w)
+    dense.phi  # noqa: B018  (forms the rows: the dense operator's sorted blocks)
+    v = rng.integers(0, 6, n) * rng.standard_normal()  # ties
+    ex = rng.standard_normal(extra)
+    a = crossed.sorted_blocks(v, ex, moments, group)
+    b = dense.sorted_blocks(v, ex, moments, group)
+    assert crossed._dense is None  # the rows were never formed
+    tol = {"rtol": 1e-10, "atol": 1e-12}
+    np.testing.assert_array_equal(a.alphas, b.alphas)
+    assert a.m == b.m
+    np.testing.assert_allclose(a.sums, b.sums, **tol)
+    np.testing.assert_allclose(a.sabs, b.sabs, **tol)
+    rows = rng.integers(0, A * m, 7)
+    nfine = -(-a.alphas.size // 16)
+    blocks = rng.integers(0, -(-nfine // group), 7)
+    for x, y in zip(a.fine(rows, blocks), b.fine(rows, blocks), strict=True):
+        np.testing.assert_allclose(x, y, **tol)
+    fine = rng.integers(0, nfine, 7)
+    np.testing.assert_allclose(a.pairs(rows, fine), b.pairs(rows, fine), **tol)
+
+
+@FAST
 @given(kind=st.sampled_from(["l1", "l2", "elliptical"]), beta=st.sampled_from([0.0, 0.7]),
        known=st.booleans(), seed=st.integers(0, 2**16))
 def test_pooled_next_values_equal_the_per_step_definition(kind, beta, known, seed):

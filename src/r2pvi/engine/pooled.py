@@ -16,8 +16,10 @@ import numpy as np
 from ..data.storage._finite import check_next_products
 from ..data.storage.crossed import CrossedRows
 from ..data.storage.sparse_rows import flat_rows
+from ..duals._scratch import buffer
 from ..duals.gram import GramFactor, ridge_cholesky
 from ..duals.operator import RidgeExpectation
+from ..duals.sorting import blocks_from_features, sort_breakpoints
 from .penalty import penalty_values
 from .q import _max_over_actions
 
@@ -39,8 +41,9 @@ class CrossedRidgeExpectation(RidgeExpectation):
     """The ridge operator ``E(y) = Lambda^{-1} Phi^T W y`` of crossed rows
     ``phi(s, a) = e_a (x) psi(s)`` (:class:`~r2pvi.data.storage.crossed.CrossedRows`).
 
-    ``Lambda`` (block diagonal) and ``E(y)`` read ``psi`` once each, in float64 chunks; rules
-    that need explicit rows (sorted blocks, weight rows: chi^2, DRPVI, DRVI-L) reach for
+    ``Lambda`` (block diagonal) and ``E(y)`` read ``psi`` once each, in float64 chunks; the
+    sorted blocks of the piecewise duals (chi^2, DRPVI) gather ``psi`` rows in sorted order
+    (:meth:`sorted_blocks`); rules that need explicit weight rows (DRVI-L) reach for
     :attr:`phi`, which forms the ``(n, d)`` float64 rows once and from then on behaves as
     :class:`~r2pvi.duals.RidgeExpectation`.
 
@@ -99,6 +102,31 @@ class CrossedRidgeExpectation(RidgeExpectation):
         if self._total is None:
             self._total = self._solve_sums(self.crossed.colsums(self.weights))
         return self._total.copy()
+
+    def sorted_blocks(self, v, breakpoints_extra=(), moments: int = 3, group: int = 1):
+        """:meth:`~r2pvi.duals.RidgeExpectation.sorted_blocks` from ``psi`` and the actions in
+        sorted order (:func:`~r2pvi.duals.sorting.blocks_from_features` with ``actions``):
+        the ``(n, d)`` rows are not formed, and the gathered rows are ``A`` times narrower."""
+        if self._dense is not None:
+            return super().sorted_blocks(v, breakpoints_extra, moments, group)
+        rows = self.crossed
+        alphas, src, m = sort_breakpoints(v, breakpoints_extra)
+        xs = buffer("crossed.xs", (src.size, rows.m))
+        if rows.psi.dtype == np.float64:
+            np.take(rows.psi, src, axis=0, mode="clip", out=xs)
+        else:  # float32 storage: gathered, then widened
+            xs[...] = np.take(rows.psi, src, axis=0, mode="clip")
+        acts = np.take(rows.actions, src, mode="clip")
+        if self.weights is not None:
+            xs *= np.take(self.weights, src, mode="clip")[:, None]
+        if m < src.size or len(breakpoints_extra):  # extras and padding: zero rows
+            acts[src < 0] = -1
+        if self.nonnegative_features is None:
+            self.nonnegative_features = bool(rows.nonnegative())
+        nonneg = self.nonnegative_features and self.weights is None
+        linv = self.chol_inverse
+        return blocks_from_features(alphas, xs, m, linv.T @ linv, nonneg, moments, group,
+                                    actions=acts)
 
     def gram_diagonal_and_sums(self):
         """``(diag(Phi^T W Phi), Phi^T W 1, non-empty rows, their total weight)`` for the fit's

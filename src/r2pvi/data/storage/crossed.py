@@ -158,6 +158,11 @@ class CrossedRows:
                 out[a * m:(a + 1) * m, a * m:(a + 1) * m] += xw.T @ sel
         return out
 
+    def nonnegative(self) -> bool:
+        """Whether every row is non-negative (``psi >= 0`` wherever an action was taken)."""
+        return all(bool((rows[self.actions[s:e] >= 0] >= 0).all())
+                   for s, e, rows in self.chunks())
+
     def used(self) -> np.ndarray:
         """Which rows hold a non-zero feature (a taken action and a non-zero ``psi``)."""
         out = self.actions >= 0
