@@ -89,9 +89,26 @@ def test_cluster_fit_of_persisted_arrays_sends_no_large_graph(client):
     np.testing.assert_allclose(est.weights_, memory.weights_, rtol=0, atol=1e-10)
 
 
-def test_cluster_fit_names_a_non_finite_next_state_feature(client):
+@pytest.mark.parametrize("beta", [0.0, 0.1])
+def test_cluster_fit_of_float32_arrays_equals_the_float32_memory_fit(client, beta):
+    # Non-negative features with no penalty or the l1 penalty: the workers compute the
+    # next-state values as one matrix-vector product per sub-chunk (in float64), as the
+    # in-memory fit does; whether the features are non-negative is learned once.
+    phi, rewards, next_phi = (a.astype(np.float32) if a.ndim > 2 else a for a in _arrays())
+    memory = r2pvi.R2PVI("tv", lam=0.5, beta=beta).fit(
+        r2pvi.OfflineDataset.from_features(phi, rewards, next_phi))
+    ds = r2pvi.OfflineDataset.from_dask(*_lazy(phi, rewards, next_phi))
+    assert ds._source.next.nonnegative is None
+    est = r2pvi.R2PVI("tv", lam=0.5, beta=beta).fit(ds)
+    assert ds._source.next.nonnegative is True
+    np.testing.assert_allclose(est.weights_, memory.weights_, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_cluster_fit_names_a_non_finite_next_state_feature(client, value):
+    # NaN: features not known non-negative (the general form); +inf: the linear form's check
     phi, rewards, next_phi = _arrays()
-    next_phi[12_345, 2, 1, 4] = np.nan
+    next_phi[12_345, 2, 1, 4] = value
     ds = r2pvi.OfflineDataset.from_dask(*_lazy(phi, rewards, next_phi))
     with pytest.raises(ValueError, match=r"12345"):
         r2pvi.R2PVI("kl", lam=0.5, beta=0.1).fit(ds)

@@ -8,6 +8,7 @@ import numpy as np
 from ._finite import NonFiniteRows, dask_origin
 from .fields import Field
 from .memory import in_memory
+from .next_states import linear_values
 
 
 class DaskField(Field):
@@ -88,6 +89,11 @@ class DaskField(Field):
 
     def remote_next_values(self, nxt, h, qmax):
         return _dask_values(nxt, h, qmax)
+
+    def nonnegative_steps(self, stop: int) -> bool:
+        """Whether every entry of steps ``0 .. stop-1`` is ``>= 0`` (one reduction on the
+        workers; NaN counts as negative)."""
+        return bool((self.data()[:stop] >= 0).all().compute())
 
 
 def active_client():
@@ -198,7 +204,23 @@ def _dask_values(nxt, h, qmax):
     import dask.array as da
 
     feats = nxt.next_phi.data()[h]
+    if nxt.nonnegative is None:  # once per dataset: it decides the linear form below
+        nxt.nonnegative = nxt.next_phi.nonnegative_steps(nxt.next_phi.shape[0] - 1)
     nonneg = nxt.nonnegative
+    lin = nxt.linear_form(qmax)
+    if lin is not None:  # one matrix-vector product per sub-chunk, as in memory
+        u, upper = lin
+        check = getattr(qmax, "check", False)
+
+        def linear_block(f, block_info=None):
+            try:
+                return linear_values(_float64_rows(f), u, upper, np.empty(len(f)), check)
+            except NonFiniteRows as exc:
+                start = 0 if block_info is None else block_info[0]["array-location"][0][0]
+                raise _ChunkNonFinite(int(start), exc.index, exc.value, exc.known) from None
+
+        return _compute_values(nxt, h, da.map_blocks(linear_block, feats, drop_axis=[1, 2],
+                                                     dtype=np.float64))
 
     def block(f, k=None, block_info=None):
         f = np.asarray(f, dtype=np.float64)
@@ -216,6 +238,25 @@ def _dask_values(nxt, h, qmax):
     else:
         kv = nxt.next_values.data()[h].rechunk((feats.chunks[0], -1))
         v = da.map_blocks(block, feats, kv[:, :, None], drop_axis=[1, 2], dtype=np.float64)
+    return _compute_values(nxt, h, v)
+
+
+def _float64_rows(f, size: int = 8192):
+    """``(start, stop, rows)`` of ``f`` by ``size`` rows, in float64 (a view when ``f`` is
+    C-contiguous float64, else a reused buffer: no fresh allocation per sub-chunk)."""
+    if f.dtype == np.float64 and f.flags.c_contiguous:
+        for s in range(0, len(f), size):
+            yield s, min(len(f), s + size), f[s:s + size]
+        return
+    buf = np.empty((min(size, len(f)),) + f.shape[1:])
+    for s in range(0, len(f), size):
+        e = min(len(f), s + size)
+        np.copyto(buf[: e - s], f[s:e])
+        yield s, e, buf[: e - s]
+
+
+def _compute_values(nxt, h, v):
+    """The values ``v`` (a lazy ``(K,)`` array) computed, a chunk's non-finite entry named."""
     try:
         return np.asarray(v.compute(), dtype=np.float64)
     except _ChunkNonFinite as exc:

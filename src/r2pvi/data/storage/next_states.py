@@ -82,6 +82,33 @@ class NextStates:
         raise NotImplementedError
 
 
+def linear_values(chunks, u, upper, out, check=False) -> np.ndarray:
+    """``V = clip(max_a phi_a^T u, 0, upper)`` into ``out (n,)`` from ``(start, stop, rows
+    (e - s, A, d) float64)`` chunks: one matrix-vector product per chunk, the max over actions
+    into ``out``, one clip at the end (the same numbers as clipping each ``Q``: ``clip`` is
+    monotone). With ``check``, a non-finite feature (whose product is non-finite, before the
+    clip would hide an infinity) raises :class:`NonFiniteRows` indexed from ``out``'s start."""
+    q = None
+    for s, e, rows in chunks:
+        A, d = rows.shape[1:]
+        if q is None or q.size < (e - s) * A:
+            q = np.empty((e - s) * A)
+        qa = np.matmul(rows.reshape(-1, d), u, out=q[: (e - s) * A]).reshape(e - s, A)
+        if check and not np.isfinite(np.add.reduce(q[: (e - s) * A])):
+            hit = first_nonfinite(rows)
+            if hit is not None:
+                (i, *rest), value = hit
+                raise NonFiniteRows((s + i, *rest), value)
+        if A == 1:
+            out[s:e] = qa[:, 0]
+        elif A == 2:
+            np.maximum(qa[:, 0], qa[:, 1], out=out[s:e])
+        else:
+            np.max(qa, axis=1, out=out[s:e])
+    np.clip(out, 0.0, upper, out=out)
+    return out
+
+
 class StoredNext(NextStates):
     """Stored next-state features ``(H, K, A, d)`` and optional known values ``(H, K, A)``."""
 
@@ -126,37 +153,25 @@ class StoredNext(NextStates):
         # Chunks in float64 (reused buffers, or views of the stored numbers): no fresh
         # allocation, so no page faults, per chunk.
         out = np.empty(n) if out is None else out
-        shape = (min(chunk, n),) + field.shape[2:]
-        linear = getattr(qmax, "linear", None)
-        lin = None
-        if linear is not None and self.next_values is None and self.nonnegative is not None:
-            lin = linear(self.nonnegative)
+        lin = self.linear_form(qmax)
         if lin is not None:
-            # V = clip(max_a phi_a^T u, 0, upper): one matrix-vector product per chunk into a
-            # reused buffer, the max over actions into the output, one clip at the end.
-            u, upper = lin
-            A, d = field.shape[2], field.shape[3]
-            q = np.empty(shape[0] * A)
-            check = getattr(qmax, "check", False)
-            for s, e, rows in field.float64_chunks(h, chunk):
-                qa = np.matmul(rows.reshape(-1, d), u, out=q[: (e - s) * A]).reshape(e - s, A)
-                # a non-finite feature makes its product non-finite (before the clip, which
-                # would hide an infinity): one sum of the chunk's products
-                if check and not np.isfinite(np.add.reduce(q[: (e - s) * A])):
-                    hit = first_nonfinite(rows)
-                    if hit is not None:
-                        raise self.nonfinite(h, s, NonFiniteRows(*hit))
-                if A == 1:
-                    out[s:e] = qa[:, 0]
-                elif A == 2:
-                    np.maximum(qa[:, 0], qa[:, 1], out=out[s:e])
-                else:
-                    np.max(qa, axis=1, out=out[s:e])
-            np.clip(out, 0.0, upper, out=out)
-            return out
+            try:
+                return linear_values(field.float64_chunks(h, chunk), *lin, out,
+                                     getattr(qmax, "check", False))
+            except NonFiniteRows as exc:
+                raise self.nonfinite(h, 0, exc) from None
         for s, e, feats in field.float64_chunks(h, chunk):
             out[s:e] = self._chunk_values(h, s, e, feats, qmax)
         return out
+
+    def linear_form(self, qmax):
+        """``(u, upper)`` when ``V = clip(max_a phi_a^T u, 0, upper)`` here (the rule's
+        ``qmax.linear``: no known values, no penalty or the l1 penalty on features known to be
+        non-negative), else None."""
+        linear = getattr(qmax, "linear", None)
+        if linear is None or self.next_values is not None or self.nonnegative is None:
+            return None
+        return linear(self.nonnegative)
 
     def take(self, idx):
         nv = None if self.next_values is None else self.next_values.subset(idx, "next_values")
