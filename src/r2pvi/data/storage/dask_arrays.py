@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._finite import NonFiniteRows, dask_origin
-from .fields import Field
+from .fields import CHUNK, Field
 from .memory import in_memory
 from .next_states import linear_values
 
@@ -166,13 +166,13 @@ def _dask_products(field: DaskField, h, cols, weights, with_gram):
     width = g + m
 
     def block(xb, yb):
-        xb = np.asarray(xb, dtype=np.float64)
-        out = np.empty((d, width))
+        out = np.zeros((d, width))
         with _quiet():  # an infinity in the data is named by the client's check of the sums
-            if with_gram:
-                xw = xb if weights is None else xb * yb[:, m:]
-                out[:, :d] = xw.T @ xb
-            out[:, g:] = xb.T @ yb[:, :m]
+            for s, e, rows in _float64_rows(xb):  # float64 sub-chunks, one reused buffer
+                if with_gram:
+                    xw = rows if weights is None else rows * yb[s:e, m:]
+                    out[:, :d] += xw.T @ rows
+                out[:, g:] += rows.T @ yb[s:e, :m]
         return out.reshape(1, d * width)
 
     nb = len(x.chunks[0])
@@ -241,9 +241,11 @@ def _dask_values(nxt, h, qmax):
     return _compute_values(nxt, h, v)
 
 
-def _float64_rows(f, size: int = 8192):
+def _float64_rows(f, size: int = CHUNK):
     """``(start, stop, rows)`` of ``f`` by ``size`` rows, in float64 (a view when ``f`` is
-    C-contiguous float64, else a reused buffer: no fresh allocation per sub-chunk)."""
+    C-contiguous float64, else a reused buffer: no fresh allocation per sub-chunk). The
+    in-memory chunk size: a buffer that stays in a core's L2 (8192 rows of ``A d = 60`` took
+    the worker's task from about 5 ms to 65 ms)."""
     if f.dtype == np.float64 and f.flags.c_contiguous:
         for s in range(0, len(f), size):
             yield s, min(len(f), s + size), f[s:s + size]
