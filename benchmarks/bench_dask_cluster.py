@@ -161,14 +161,21 @@ def main(argv=None):
                  "dask persisted": lambda: r2pvi.OfflineDataset.from_dask(*persisted)}
         if not args.skip_unpersisted:
             kinds["dask from_array"] = lambda: r2pvi.OfflineDataset.from_dask(*lazy())
-        for div in args.divergences:
-            res = {name: timed_fit(make, div) for name, make in kinds.items()}
-            base = res["memory"]
-            for name, (wall, cpu, w, large) in res.items():
-                diff = float(np.max(np.abs(w - base[2])))
-                print(f"{div:3s} {name:16s} wall {wall:7.2f} s  cpu {cpu:7.2f} s  "
-                      f"x{wall / base[0]:6.1f}  max|dw| {diff:.1e}  "
-                      f"large-graph warnings {len(large)}")
+        compare(kinds, args.divergences)
+
+
+def compare(kinds, divergences):
+    """For each divergence, fit every kind of dataset (the first is the baseline) and print
+    wall and client-CPU seconds, the ratio to the baseline, the largest weight difference
+    and the large-graph warnings."""
+    for div in divergences:
+        res = {name: timed_fit(make, div) for name, make in kinds.items()}
+        base = next(iter(res.values()))
+        for name, (wall, cpu, w, large) in res.items():
+            diff = float(np.max(np.abs(w - base[2])))
+            print(f"{div:3s} {name:20s} wall {wall:7.2f} s  cpu {cpu:7.2f} s  "
+                  f"x{wall / base[0]:6.1f}  max|dw| {diff:.1e}  "
+                  f"large-graph warnings {len(large)}", flush=True)
 
 
 def main_disk(args):
@@ -201,15 +208,8 @@ def main_disk(args):
         print(f"{args.divergences[0]:3s} dask, first fit (the workers read the files): wall "
               f"{wall:7.2f} s  cpu {cpu:7.2f} s  large-graph warnings {len(large)}", flush=True)
         timed_fit(lambda: ds, args.divergences[0])  # the files in the page cache
-        kinds = {"memory (open)": lambda: ds, "dask (persisted)": lambda: dask_ds}
-        for div in args.divergences:
-            res = {name: timed_fit(make, div) for name, make in kinds.items()}
-            base = res["memory (open)"]
-            for name, (wall, cpu, w, large) in res.items():
-                diff = float(np.max(np.abs(w - base[2])))
-                print(f"{div:3s} {name:20s} wall {wall:7.2f} s  cpu {cpu:7.2f} s  "
-                      f"x{wall / base[0]:6.1f}  max|dw| {diff:.1e}  "
-                      f"large-graph warnings {len(large)}", flush=True)
+        compare({"memory (open)": lambda: ds, "dask (persisted)": lambda: dask_ds},
+                args.divergences)
 
 
 if __name__ == "__main__":

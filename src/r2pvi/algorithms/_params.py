@@ -3,12 +3,39 @@
 from __future__ import annotations
 
 import numbers
+import re
 
 import numpy as np
 
 from .._validation import check_scalar, plain
 
-__all__ = ["floor_value", "check_v_min", "check_radius", "check_flag"]
+__all__ = ["floor_value", "check_v_min", "check_radius", "check_flag", "shared_docs"]
+
+# Parameter descriptions that every estimator shares, written once: a class docstring holds
+# the marker line ``{name}`` (indented as the description) and :func:`shared_docs` fills it.
+_SHARED_DOCS = {
+    "time_homogeneous": """\
+Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
+last step's next states are not data), with one Gram matrix factored once (per-step
+work: next-state values and regressions). Valid only when the nominal dynamics and
+rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
+False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
+steps are stationary (:attr:`OfflineDataset.stationary
+<r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
+the others per step (the paper's experiments); ``fit_report_.pooled`` says which.""",
+}
+
+
+def shared_docs(cls):
+    """Class decorator: fill the marker lines ``{name}`` of ``cls.__doc__`` with the shared
+    parameter descriptions (indented as the marker)."""
+    doc = cls.__doc__ or ""
+    for name, text in _SHARED_DOCS.items():
+        for indent in set(re.findall(r"^( *)\{" + name + r"\}$", doc, flags=re.M)):
+            filled = "\n".join(indent + line for line in text.splitlines())
+            doc = doc.replace(indent + "{" + name + "}", filled)
+    cls.__doc__ = doc
+    return cls
 
 
 def floor_value(v_min, v: np.ndarray) -> float:

@@ -7,7 +7,7 @@ import numpy as np
 from ..duals.constrained import tv_constrained
 from ..duals.ranges import value_range
 from ..engine import StepContext, StepRule
-from ._params import check_flag, check_radius, check_v_min, floor_value
+from ._params import check_flag, check_radius, check_v_min, floor_value, shared_docs
 from ._variance import VarianceAwareMixin
 from .base import LinearEstimator
 
@@ -39,6 +39,7 @@ class TVBallRule(StepRule):
         return self.rho[h]
 
 
+@shared_docs
 class DRPVI(VarianceAwareMixin, LinearEstimator):
     """Distributionally robust pessimistic value iteration with TV uncertainty balls.
 
@@ -82,14 +83,7 @@ class DRPVI(VarianceAwareMixin, LinearEstimator):
         at 1; :func:`~r2pvi.algorithms._variance.variance_weights`) weights a second pass
         (weighted Gram matrix, targets and penalty).
     time_homogeneous : {"auto", True, False}, default "auto"
-        Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
-        last step's next states are not data), with one Gram matrix factored once (per-step
-        work: next-state values and regressions). Valid only when the nominal dynamics and
-        rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
-        False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
-        steps are stationary (:attr:`OfflineDataset.stationary
-        <r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
-        the others per step (the paper's experiments); ``fit_report_.pooled`` says which.
+        {time_homogeneous}
 
     Attributes
     ----------

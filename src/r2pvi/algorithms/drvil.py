@@ -11,7 +11,7 @@ from .._validation import check_choice
 from ..duals.constrained import kl_constrained
 from ..duals.ranges import value_extent, value_range, value_unit
 from ..engine import StepContext, StepRule
-from ._params import check_radius
+from ._params import check_radius, shared_docs
 from .base import LinearEstimator
 
 __all__ = ["DRVIL", "KLBallRule", "auto_b_min"]
@@ -98,6 +98,7 @@ def check_b_min(b_min):
 B_MIN_MAX = 1e300
 
 
+@shared_docs
 class DRVIL(LinearEstimator):
     """Distributionally robust value iteration with KL uncertainty balls (DRVI-L).
 
@@ -155,14 +156,7 @@ class DRVIL(LinearEstimator):
         of ``e^{-V/b} - 1`` (:func:`~r2pvi.duals.kl_constrained`, ``normalized=`` /
         ``centered=``). The same for distributions.
     time_homogeneous : {"auto", True, False}, default "auto"
-        Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
-        last step's next states are not data), with one Gram matrix factored once (per-step
-        work: next-state values and regressions). Valid only when the nominal dynamics and
-        rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
-        False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
-        steps are stationary (:attr:`OfflineDataset.stationary
-        <r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
-        the others per step (the paper's experiments); ``fit_report_.pooled`` says which.
+        {time_homogeneous}
 
     Attributes
     ----------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from ..duals.ranges import project_onto_range, value_range
 from ..engine import StepRule
+from ._params import shared_docs
 from .base import LinearEstimator
 
 __all__ = ["PEVI", "RidgeRule"]
@@ -17,6 +18,7 @@ class RidgeRule(StepRule):
         return project_onto_range(E(v), *value_range(v, ctx.next_value_bound))
 
 
+@shared_docs
 class PEVI(LinearEstimator):
     """Pessimistic value iteration with linear function approximation (non-robust baseline).
 
@@ -36,14 +38,7 @@ class PEVI(LinearEstimator):
     penalty : {"elliptical", "l1", "l2"}, default "elliptical"
         Penalty form (PEVI's own is the elliptical norm).
     time_homogeneous : {"auto", True, False}, default "auto"
-        Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
-        last step's next states are not data), with one Gram matrix factored once (per-step
-        work: next-state values and regressions). Valid only when the nominal dynamics and
-        rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
-        False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
-        steps are stationary (:attr:`OfflineDataset.stationary
-        <r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
-        the others per step (the paper's experiments); ``fit_report_.pooled`` says which.
+        {time_homogeneous}
 
     Examples
     --------

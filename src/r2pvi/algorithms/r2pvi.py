@@ -17,7 +17,7 @@ from ..duals.regularized import (
     tv_regularized,
 )
 from ..engine import StepRule
-from ._params import check_flag, check_v_min
+from ._params import check_flag, check_v_min, shared_docs
 from ._variance import VarianceAwareMixin
 from .base import LinearEstimator
 
@@ -120,6 +120,7 @@ class FDivergenceRule(StepRule):
 _CLOSED_FORMS = {"tv", "kl", "chi2"}
 
 
+@shared_docs
 class R2PVI(VarianceAwareMixin, LinearEstimator):
     """Robust regularized pessimistic value iteration (the paper's R2PVI).
 
@@ -182,14 +183,7 @@ class R2PVI(VarianceAwareMixin, LinearEstimator):
         ``-lam log max{w', exp(-H r_max/lam)}``, whose ridge shrinkage bias ``-lam log s_i``
         grows with ``lam``. See :func:`~r2pvi.duals.kl_regularized`.
     time_homogeneous : {"auto", True, False}, default "auto"
-        Pooled steps: every step's regressions use the transitions of steps 0 .. H-2 (the
-        last step's next states are not data), with one Gram matrix factored once (per-step
-        work: next-state values and regressions). Valid only when the nominal dynamics and
-        rewards do not depend on h (a time-homogeneous MDP, e.g. a Gymnasium environment);
-        False is the paper's per-step estimator. "auto" pools the steps of a dataset whose
-        steps are stationary (:attr:`OfflineDataset.stationary
-        <r2pvi.OfflineDataset.stationary>`: built from episodes of an environment) and fits
-        the others per step (the paper's experiments); ``fit_report_.pooled`` says which.
+        {time_homogeneous}
     moments : {"valid", "ridge"}, default "valid"
         KL (``kl_form="normalized"``) and chi^2 only: how a factor's moments are estimated
         from its signed ridge weights ``M_i`` (row sum ``s_i``). "valid": the normalized
