@@ -258,7 +258,9 @@ def from_dask(cls, phi, rewards, next_phi, next_values=None):
     def sm(a, features=False):  # step-major, chunked along trajectories like phi
         if features and a.dtype not in (np.float32, np.float64):
             a = a.astype(np.float64)  # as from_features stores other numbers (lazily)
-        a = a.rechunk((chunks,) + tuple(-1 for _ in a.shape[1:]))
+        # one chunk per step: a step's rows are whole chunks (Dask copies a slice that is
+        # less than half of its chunk: every step would copy its features)
+        a = a.rechunk((chunks, 1) + tuple(-1 for _ in a.shape[2:]))
         return a.swapaxes(0, 1)
 
     nv = None if next_values is None else _st.DaskField(sm(next_values))
