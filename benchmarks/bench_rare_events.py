@@ -22,10 +22,11 @@ selects (default: tv, kl, chi2):
   about 2 min on 1000 episodes);
 
 with the fit's CPU seconds (one BLAS thread) and, to tell a bootstrapped value from a
-one-step one, the learned Q at the dataset's initial states (``Q0``: the mean of
-``q_values(initial_features(), 0)`` over the states and both actions) and the action gap
-relative to it (``gap/Q0``: mean ``|Q(s, 0) - Q(s, 1)|`` over the same states, divided by
-``Q0``).
+one-step one, three numbers on the dataset's initial states (one per episode): the learned Q
+(``Q0``: the mean of ``q_values(initial_features(), 0)`` over the states and both actions),
+the action gap relative to it (``gap/Q0``: the mean ``|Q(s, 0) - Q(s, 1)|`` divided by
+``Q0``) and the share of the states where the greedy action is the LQR expert's
+(``agree``).
 
     python benchmarks/bench_rare_events.py                       # 1000 episodes, 1 dataset
     python benchmarks/bench_rare_events.py --episodes 300 --seeds 1 2 3
@@ -58,12 +59,15 @@ COMMON = {"beta": 0.1, "gamma": 1.0, "penalty": "l1", "time_homogeneous": True}
 
 
 def dataset(n_episodes: int, seed: int, n_centers: int = 3):
-    """``(data, feature map, episodes that end in a failure)`` of one behaviour dataset."""
-    behaviour = EpsilonGreedy(CartPoleLQR(), 0.3, 2)
+    """``(data, feature map, episodes that end in a failure, the expert's actions at the
+    initial states)`` of one behaviour dataset."""
+    expert = CartPoleLQR()
+    behaviour = EpsilonGreedy(expert, 0.3, 2)
     eps = collect_episodes(NoisyCartPoleEnv(), behaviour, n_episodes, seed=seed, n_envs=50)
     fmap = cross_actions(NormalizedRBF(n_centers=n_centers).fit(episode_observations(eps)), 2)
     data = OfflineDataset.from_episodes(eps, fmap, 2, horizon=200)
-    return data, fmap, sum(int(np.any(e.terminations)) for e in eps)
+    expert_actions = expert(0, np.stack([np.asarray(e.observations[0]) for e in eps]))
+    return data, fmap, sum(int(np.any(e.terminations)) for e in eps), expert_actions
 
 
 def estimators(names, lams, rhos, drvil_rhos):
@@ -88,17 +92,19 @@ def estimators(names, lams, rhos, drvil_rhos):
     return rows
 
 
-def initial_q(est, data):
-    """``(Q0, gap / Q0)``: the mean learned ``Q_0`` over the dataset's initial states and
-    both actions, and the mean ``|Q_0(s, 0) - Q_0(s, 1)|`` over them relative to it."""
+def initial_q(est, data, expert_actions):
+    """``(Q0, gap / Q0, agree)``: the mean learned ``Q_0`` over the dataset's initial states
+    and both actions, the mean ``|Q_0(s, 0) - Q_0(s, 1)|`` over them relative to it, and the
+    share of them where the greedy action is ``expert_actions``'."""
     q = est.q_values(data.initial_features(), 0)
     mean = float(q.mean())
     gap = float(np.abs(q[:, 0] - q[:, 1]).mean())
-    return mean, (gap / mean if mean > 0 else float("nan"))
+    agree = float(np.mean(np.argmax(q, axis=1) == expert_actions))
+    return mean, (gap / mean if mean > 0 else float("nan")), agree
 
 
-def row(est, data, fmap):
-    """``(nominal, sweep means..., fit CPU s, Q0, gap / Q0)`` of one estimator."""
+def row(est, data, fmap, expert_actions):
+    """``(nominal, sweep means..., fit CPU s, Q0, gap / Q0, agree)`` of one estimator."""
     t0 = time.process_time()
     est.fit(data)
     cpu = time.process_time() - t0
@@ -106,7 +112,7 @@ def row(est, data, fmap):
     mean = res.mean
     nominal = float(mean[(res.parameter == "force_mag") & (res.p == 0.0)][0])
     return ([nominal] + [float(mean[res.parameter == p].mean()) for p in SWEEPS] + [cpu]
-            + list(initial_q(est, data)))
+            + list(initial_q(est, data, expert_actions)))
 
 
 def main():
@@ -128,18 +134,18 @@ def main():
     if args.centers < 2:
         parser.error(f"--centers must be at least 2, got {args.centers}")
     header = (f"{'estimator':<26} {'nominal':>8} {'force':>7} {'gravity':>8} {'length':>7} "
-              f"{'fit CPU s':>9} {'Q0':>8} {'gap/Q0':>8}")
+              f"{'fit CPU s':>9} {'Q0':>8} {'gap/Q0':>8} {'agree':>6}")
     with threadpool_limits(limits=1, user_api="blas"):
         for seed in args.seeds:
-            data, fmap, failures = dataset(args.episodes, seed, args.centers)
+            data, fmap, failures, expert_actions = dataset(args.episodes, seed, args.centers)
             print(f"\ndataset seed {seed}: {data}, {failures} episodes end in a failure; "
                   f"NormalizedRBF(n_centers={args.centers}): d = {data.n_features}")
             print(header)
             for name, est in estimators(set(args.estimators), args.lams, args.rhos,
                                         args.drvil_rhos):
-                vals = row(est, data, fmap)
+                vals = row(est, data, fmap, expert_actions)
                 print(f"{name:<26} {vals[0]:8.1f} {vals[1]:7.1f} {vals[2]:8.1f} {vals[3]:7.1f} "
-                      f"{vals[4]:9.2f} {vals[5]:8.3f} {vals[6]:8.2e}", flush=True)
+                      f"{vals[4]:9.2f} {vals[5]:8.3f} {vals[6]:8.2e} {vals[7]:6.3f}", flush=True)
 
 
 if __name__ == "__main__":
