@@ -91,7 +91,7 @@ class DaskField(Field):
         return _dask_values(nxt, h, qmax)
 
     def nonnegative_steps(self, stop: int) -> bool:
-        """Whether every entry of steps ``0 .. stop-1`` is ``>= 0`` (one reduction on the
+        """Whether every entry of the first ``stop`` steps is ``>= 0`` (one reduction on the
         workers; NaN counts as negative)."""
         return bool((self.data()[:stop] >= 0).all().compute())
 
