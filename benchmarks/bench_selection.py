@@ -8,8 +8,10 @@ fit form (pooled / per step) x feature map is
    the fifth with ``est.score``): ``bellman`` (minus the nominal Bellman residual), ``fqe``
    (fitted-Q evaluation of the greedy policy, pooled, on the candidate's own features and
    ridge ``gamma``: the library's default), ``fqe eval-map`` (the same on one richer
-   evaluation map shared by every candidate, ridge 0.01: ``evaluation_map=``, ``gamma=``)
-   and ``robust_fqe`` (the policy's value under the candidate's own uncertainty model);
+   evaluation map shared by every candidate, ridge 0.01: ``evaluation_map=``, ``gamma=``),
+   ``fqe gamma=0.01`` (the candidate's own map, ridge 0.01), ``fqe eval-map LCB`` (the
+   eval-map FQE minus one standard deviation of its five fold values) and ``robust_fqe``
+   (the policy's value under the candidate's own uncertainty model);
 2. refitted on all training trajectories and evaluated in the test environments: the
    nominal return, and the mean over the perturbation sweeps (every point of every sweep).
 
@@ -36,11 +38,18 @@ Tasks:
   here: one fit takes 45 s of CPU at ``d = 192``.
 
 Candidates run in ``--jobs`` processes (fork), BLAS on one thread each. The whole script
-takes about 12 minutes on 2 cores.
+takes about 15-30 minutes on 2 cores.
 
     python benchmarks/bench_selection.py                     # both tasks
     python benchmarks/bench_selection.py --task acrobot --jobs 2
     python benchmarks/bench_selection.py --quick             # a small smoke run
+    python benchmarks/bench_selection.py --json rows         # also rows.<task>.json (folds)
+    python benchmarks/bench_selection.py --calibration       # only the calibration table
+
+``--calibration`` measures, for every evaluation setting (each map's own features and the
+evaluation map, ridge ``gamma`` in 0.01, 0.1, 1), how well fitted-Q evaluation of the
+behaviour policy on 4 training folds reproduces the fifth fold's observed returns
+(:mod:`r2pvi.algorithms._calibration`): a data-only check of the evaluation's setting.
 """
 
 from __future__ import annotations
