@@ -8,8 +8,10 @@ fit form (pooled / per step) x feature map is
    the fifth with ``est.score``): ``bellman`` (minus the nominal Bellman residual), ``fqe``
    (fitted-Q evaluation of the greedy policy, pooled, on the candidate's own features and
    ridge ``gamma``: the library's default), ``fqe eval-map`` (the same on one richer
-   evaluation map shared by every candidate, ridge 0.01: ``evaluation_map=``, ``gamma=``)
-   and ``robust_fqe`` (the policy's value under the candidate's own uncertainty model);
+   evaluation map shared by every candidate, ridge 0.01: ``evaluation_map=``, ``gamma=``),
+   ``fqe gamma=0.01`` (the candidate's own map, ridge 0.01), ``fqe eval-map LCB`` (the
+   eval-map FQE minus one standard deviation of its five fold values) and ``robust_fqe``
+   (the policy's value under the candidate's own uncertainty model);
 2. refitted on all training trajectories and evaluated in the test environments: the
    nominal return, and the mean over the perturbation sweeps (every point of every sweep).
 
@@ -36,16 +38,24 @@ Tasks:
   here: one fit takes 45 s of CPU at ``d = 192``.
 
 Candidates run in ``--jobs`` processes (fork), BLAS on one thread each. The whole script
-takes about 12 minutes on 2 cores.
+takes about 15-30 minutes on 2 cores.
 
     python benchmarks/bench_selection.py                     # both tasks
     python benchmarks/bench_selection.py --task acrobot --jobs 2
     python benchmarks/bench_selection.py --quick             # a small smoke run
+    python benchmarks/bench_selection.py --json rows         # also rows.<task>.json (folds)
+    python benchmarks/bench_selection.py --calibration       # only the calibration table
+
+``--calibration`` measures, for every evaluation setting (each map's own features and the
+evaluation map, ridge ``gamma`` in 0.01, 0.1, 1), how well fitted-Q evaluation of the
+behaviour policy on 4 training folds reproduces the fifth fold's observed returns
+(:mod:`r2pvi.algorithms._calibration`): a data-only check of the evaluation's setting.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
 import time
 import warnings
@@ -60,12 +70,16 @@ from r2pvi import DRPVI, PEVI, R2PVI, OfflineDataset
 from r2pvi.episodes import episode_observations
 from r2pvi.features import NormalizedRBF, cross_actions
 
-SCORES = ("bellman", "fqe", "fqe eval-map", "robust_fqe")
+SCORES = ("bellman", "fqe", "fqe gamma=0.01", "fqe eval-map", "robust_fqe")
+# derived from the folds' scores: the eval-map FQE minus one standard deviation over folds
+DERIVED = ("fqe eval-map LCB",)
+CALIBRATION_GAMMAS = (0.01, 0.1, 1.0)
 
 
 def score_arguments(task) -> dict:
     """``est.score`` keywords of each score (the evaluation map is the task's)."""
     return {"bellman": {"kind": "bellman"}, "fqe": {"kind": "fqe"},
+            "fqe gamma=0.01": {"kind": "fqe", "gamma": 0.01},
             "fqe eval-map": {"kind": "fqe", "evaluation_map": task.eval_map, "gamma": 0.01},
             "robust_fqe": {"kind": "robust_fqe"}}
 
@@ -229,7 +243,10 @@ def run_candidate(index: int) -> dict:
         est = clone(cand.estimator).fit(data)
         policy = est.as_policy(task.maps[cand.feature_map])
         nominal, sweep, sweeps = task.evaluate(policy)
-    out.update(cv={k: float(np.mean(v)) for k, v in scores.items()},
+    cv_mean = {k: float(np.mean(v)) for k, v in scores.items()}
+    spread = float(np.std(scores["fqe eval-map"], ddof=1))
+    cv_mean["fqe eval-map LCB"] = cv_mean["fqe eval-map"] - spread
+    out.update(cv=cv_mean, folds={k: [float(x) for x in v] for k, v in scores.items()},
                nominal=nominal, sweep=sweep, sweeps=sweeps,
                fit_cpu=fit_cpu / 5, cv_cpu=cv_cpu, cpu=time.process_time() - c0)
     return out
@@ -247,6 +264,51 @@ def run_task(task: Task, jobs: int) -> list[dict]:
         return pool.map(run_candidate, range(len(task.grid)), chunksize=1)
 
 
+def calibrate_setting(setting: tuple) -> dict:
+    """Behaviour-policy calibration of one evaluation setting ``(map name or "eval-map",
+    gamma)`` by 5-fold trajectory CV on the training episodes (in a worker): SARSA-style
+    FQE of the behaviour on 4 folds, its initial-state values against the fifth fold's
+    observed returns (mean bias, RMSE per trajectory) and its one-step (TD) error there."""
+    from r2pvi.algorithms._calibration import calibration_errors
+
+    task = _TASK
+    map_name, gamma = setting
+    emap = task.eval_map if map_name == "eval-map" else None
+    data = task.dataset(next(iter(task.maps)) if emap is not None else map_name)
+    cv = KFold(5, shuffle=True, random_state=0)
+    with threadpool_limits(1, "blas"):
+        res = [calibration_errors(data[tr], data[te], gamma, emap) for tr, te in cv.split(data)]
+    return {"map": map_name, "gamma": gamma,
+            **{k: float(np.mean([r[k] for r in res])) for k in ("bias", "rmse", "td")}}
+
+
+def run_calibration(task: Task, jobs: int) -> list[dict]:
+    global _TASK
+    for name in task.maps:
+        task.dataset(name)
+    _TASK = task
+    settings = [(m, g) for m in (*task.maps, "eval-map") for g in CALIBRATION_GAMMAS]
+    if jobs <= 1:
+        return [calibrate_setting(s) for s in settings]
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(jobs) as pool:
+        return pool.map(calibrate_setting, settings, chunksize=1)
+
+
+def calibration_report(task: Task, rows: list[dict]) -> str:
+    lines = [f"\n## {task.name}: behaviour-policy calibration of the evaluation settings\n",
+             "| evaluation map | gamma | bias of the initial-state value | RMSE | TD error |",
+             "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['map']} | {r['gamma']:g} | {r['bias']:.2f} | {r['rmse']:.2f} | "
+                     f"{r['td']:.4g} |")
+    best = min(rows, key=lambda r: r["rmse"])
+    lines.append(f"\nbest calibrated (RMSE): {best['map']}, gamma {best['gamma']:g}; "
+                 f"smallest TD error: "
+                 + "{0[map]}, gamma {0[gamma]:g}".format(min(rows, key=lambda r: r["td"])))
+    return "\n".join(lines)
+
+
 def gap(value: float, best: float) -> float:
     """Shortfall of ``value`` below ``best`` in % of ``|best|`` (0 when at or above)."""
     return max(0.0, best - value) / abs(best) * 100.0
@@ -257,12 +319,13 @@ def report(task: Task, rows: list[dict], behaviour: tuple) -> str:
              f"{len(rows)} candidates\n"]
     lines.append(f"behaviour policy: nominal {behaviour[0]:.1f}, sweep mean "
                  f"{behaviour[1]:.1f}\n")
-    head = ["candidate", "map (d)", *SCORES, "nominal", "sweep mean", "fit CPU s",
+    head = ["candidate", "map (d)", *SCORES, *DERIVED, "nominal", "sweep mean", "fit CPU s",
             "CV CPU s"]
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---|" * len(head))
     for r in rows:
-        cells = [r["label"], f"{r['map']} ({r['d']})", *(f"{r['cv'][k]:.4g}" for k in SCORES),
+        cells = [r["label"], f"{r['map']} ({r['d']})",
+                 *(f"{r['cv'][k]:.4g}" for k in SCORES + DERIVED),
                  f"{r['nominal']:.1f}", f"{r['sweep']:.1f}", f"{r['fit_cpu']:.2f}",
                  f"{r['cv_cpu']:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
@@ -275,7 +338,7 @@ def report(task: Task, rows: list[dict], behaviour: tuple) -> str:
             "gap to best sweep mean", "targets (2 % / 5 %)"]
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---|" * len(head))
-    for name in SCORES:
+    for name in SCORES + DERIVED:
         pick = max(rows, key=lambda r: r["cv"][name])
         g1, g2 = gap(pick["nominal"], oracle["nominal"]), gap(pick["sweep"], best_sweep)
         met = ("met" if g1 <= 2 and g2 <= 5 else "missed") + f" ({g1 <= 2}, {g2 <= 5})"
@@ -289,13 +352,23 @@ def main():
     parser.add_argument("--task", choices=["cartpole", "acrobot", "both"], default="both")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--quick", action="store_true", help="small data and grid (smoke)")
+    parser.add_argument("--calibration", action="store_true",
+                        help="only the behaviour-policy calibration of the evaluation settings")
+    parser.add_argument("--json", help="write the candidates' rows (fold scores) here")
     args = parser.parse_args()
     t0 = time.perf_counter()
     names = ["cartpole", "acrobot"] if args.task == "both" else [args.task]
     for name in names:
         t = time.perf_counter()
         task = (cartpole_task if name == "cartpole" else acrobot_task)(args.quick)
+        if args.calibration:
+            print(calibration_report(task, run_calibration(task, args.jobs)), flush=True)
+            print(f"\n{name}: {time.perf_counter() - t:.0f} s wall", flush=True)
+            continue
         rows = run_task(task, args.jobs)
+        if args.json:
+            with open(f"{args.json}.{name}.json", "w") as f:
+                json.dump(rows, f, indent=1)
         behaviour = task.evaluate(task.behaviour)
         print(report(task, rows, behaviour), flush=True)
         print(f"\n{name}: {time.perf_counter() - t:.0f} s wall", flush=True)
