@@ -3,7 +3,7 @@ against exact dynamic programming on a tabular (hence linear) MDP with an absorb
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from r2pvi import OfflineDataset
@@ -28,14 +28,14 @@ def tabular_task(seed: int):
     return P, R, b, start
 
 
-def exact_behaviour_value(P, R, b, start, H: int, offset: float = 0.0) -> float:
-    """``E_{s_0}[V^b_0(s_0)]`` by backward induction, rewards ``R`` (the shifted ones); the
+def exact_behaviour_q(P, R, b, H: int, offset: float = 0.0) -> np.ndarray:
+    """``Q^b_0 (S, A)`` by backward induction, rewards ``R`` (the shifted ones); the
     absorbing state pays ``offset`` at every step left."""
     V = np.zeros(S)
     for h in range(H - 1, -1, -1):
         Q = R + P[:, :, :S] @ V + P[:, :, S] * offset * (H - h - 1)
         V = (b * Q).sum(axis=1)
-    return float(start @ V)
+    return Q
 
 
 def episodes(P, R, b, start, n: int, H: int, rng, offset: float = 0.0):
@@ -74,6 +74,7 @@ def dataset(eps, H, offset=0.0):
 
 @settings(max_examples=5, deadline=None)
 @given(seed=st.integers(0, 10_000), shifted=st.booleans())
+@example(seed=1500, shifted=True)  # the absorbing state's offset above every shifted reward
 def test_behaviour_fqe_converges_to_the_exact_behaviour_value(seed, shifted):
     """Tabular features make the behaviour's ``Q^b`` linear: with many episodes and a small
     ridge, the mean initial-state value of the pooled SARSA-style evaluation is the exact
@@ -85,11 +86,19 @@ def test_behaviour_fqe_converges_to_the_exact_behaviour_value(seed, shifted):
     W = behaviour_weights(ds, gamma=1e-3)
     x0 = ds.initial_features()  # (K, A, d)
     a0 = np.asarray(ds._source.phi.actions)[0]
-    got = float(np.mean(x0[np.arange(len(a0)), a0] @ W[0]))
-    want = exact_behaviour_value(P, R, b, start, H, offset)
-    assert got == pytest.approx(want, rel=0.02)
-    # the observed returns are an unbiased sample of the same value
-    assert float(observed_returns(ds).mean()) == pytest.approx(want, rel=0.03)
+    got = x0[np.arange(len(a0)), a0] @ W[0]
+    # the exact Q^b_0 at the sampled initial states and actions (the sampling of the initial
+    # pairs is then no error of the evaluation)
+    s0 = np.asarray(ds.states)[:, 0].astype(int).ravel()
+    want = exact_behaviour_q(P, R, b, H, offset)[s0, a0]
+    # estimation error of 4000 episodes (measured over 160 seeds: at most 0.7 of these
+    # bounds, 3.3% on the mean; clipping values at the largest reward instead of the
+    # absorbing state's offset was off by 9.6% on a shifted task)
+    np.testing.assert_allclose(got, want, rtol=0.08, atol=0.04)
+    assert float(got.mean()) == pytest.approx(float(want.mean()), rel=0.05)
+    # the observed returns are an unbiased sample of the same values
+    ret = observed_returns(ds)
+    assert abs(float(ret.mean()) - float(want.mean())) <= 6 * ret.std() / np.sqrt(ret.size)
 
 
 def test_observed_returns_are_the_episode_returns_in_the_shifted_units():

@@ -101,7 +101,7 @@ def behaviour_weights(dataset: OfflineDataset, gamma: float, evaluation_map=None
     rows = _SarsaRows(dataset, evaluation_map) if rows is None else rows
     H = rows.H
     if r_max is None:
-        r_max = max(float(dataset.reward_range[1]), 0.0)
+        r_max = _value_bound(dataset, rows)
     E = CrossedRidgeExpectation(rows.pooled_taken, gamma)
     theta = E(rows.rewards[:rows.P].reshape(-1))
     nxt = rows.pooled_next
@@ -113,6 +113,13 @@ def behaviour_weights(dataset: OfflineDataset, gamma: float, evaluation_map=None
         v[rows.known_rows] = rows.known_base + (H - h - 1) * rows.offset
         W[h] = theta + E(v)
     return W
+
+
+def _value_bound(dataset: OfflineDataset, rows: _SarsaRows) -> float:
+    """The largest value one step can add: the largest reward, or the offset of shifted
+    rewards, which an absorbing state pays every step (above every reward when the original
+    rewards are negative)."""
+    return max(float(dataset.reward_range[1]), rows.offset, 0.0)
 
 
 def _terminal(dataset: OfflineDataset, actions: np.ndarray):
@@ -149,7 +156,7 @@ def calibration_errors(train: OfflineDataset, held: OfflineDataset, gamma: float
     W = behaviour_weights(train, gamma, evaluation_map)
     rows = _SarsaRows(held, evaluation_map)
     H = rows.H
-    r_max = max(float(train.reward_range[1]), 0.0)
+    r_max = _value_bound(train, rows)
     q = np.empty((H, rows.K))
     for h in range(H):
         q[h] = np.clip(rows.taken_values(rows.psi[h], rows.actions[h], W[h]), 0.0,
