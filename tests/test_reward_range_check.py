@@ -120,3 +120,34 @@ def test_pendulum_rewards_shifted_by_auto_need_their_r_max():
     with pytest.raises(ValueError, match=re.escape(f"pass r_max={high!r} or larger")):
         R2PVI("tv", lam=1.0).fit(data)
     R2PVI("tv", lam=1.0, r_max=high).fit(data)
+
+
+def _goal_episodes(n=30, seed=0):
+    """-1 per step until an episode reaches an absorbing goal (observation 1.0) or is cut."""
+    rng = np.random.default_rng(seed)
+    eps = []
+    for _ in range(n):
+        T = int(rng.integers(2, 6))
+        reached = bool(rng.random() < 0.5)
+        obs = np.r_[rng.random(T) * 0.9, 1.0 if reached else rng.random() * 0.9][:, None]
+        term = np.zeros(T, bool)
+        term[-1] = reached
+        eps.append({"observations": obs, "actions": rng.integers(0, 2, T),
+                    "rewards": np.full(T, -1.0), "terminations": term,
+                    "truncations": ~term & (np.arange(T) == T - 1)})
+    return eps
+
+
+def test_an_r_max_below_the_offset_of_absorbing_episodes_is_refused_with_the_fix():
+    # The goal pays the offset c = 1 at every remaining step: with r_max = 0.5 every other
+    # value would be clipped below the goal's. Without absorbing states (Pendulum, above)
+    # the offset bounds nothing and a smaller r_max stays allowed.
+    eps = _goal_episodes()
+    fmap = cross_actions(StateAggregation(n_bins=4).fit([[0.0], [1.0]]), 2)
+    data = OfflineDataset.from_episodes(eps, fmap, 2, horizon=6, reward_offset="auto")
+    assert data.has_known_values and data.reward_range[1] <= 1.0
+    for est in (R2PVI("tv", lam=0.1, r_max=0.5), PEVI(r_max=0.5), DRPVI(0.1, r_max=0.5)):
+        with pytest.raises(ValueError, match=r"r_max=0\.5 is below .* reward offset c=1\.0"
+                                             r".*Pass r_max >= 1\.0"):
+            est.fit(data)
+    R2PVI("tv", lam=0.1, r_max=1.0).fit(data)

@@ -38,6 +38,13 @@ _FITTED = ("weights_", "reward_weights_", "gram_inv_diag_")
 def _check_r_max(r_max, dataset) -> float:
     """``r_max > 0``; a zero taken from data whose rewards are all 0 is named as such."""
     value = check_scalar(r_max, "r_max")
+    offset = float(getattr(getattr(dataset, "_source", None), "reward_offset", 0.0) or 0.0)
+    if 0 < value < offset and getattr(dataset, "has_known_values", False):
+        raise ValueError(
+            f"r_max={value!r} is below this dataset's reward offset c={offset!r}: its "
+            f"episodes end in absorbing states, which pay c at every remaining step, so the "
+            f"values of the other states would be clipped below theirs (Q_h <= (H - h) "
+            f"r_max). Pass r_max >= {offset!r} (the bound of the shifted rewards and of c)")
     if value > 0:
         return value
     low, high = dataset.reward_range if value == 0 else (None, None)
