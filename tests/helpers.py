@@ -44,3 +44,19 @@ def fail_state_mdp(seed=0, H=3, n_actions=2, reward_high=0.1, random_initial=Fal
     theta[:, 3] = 0.0
     start = rng.dirichlet(np.ones(5)) if random_initial else np.full(5, 0.2)
     return FiniteLinearMDP(phi, theta, mu, initial=np.r_[start, 0.0], fail_states=(5,))
+
+
+def pooled_or_per_step_estimators():
+    """``make(time_homogeneous) -> estimator`` for every rule the state-feature layout serves
+    (TV, KL, chi^2, PEVI with the elliptical penalty, DRPVI; the last, variance-aware TV)."""
+    from r2pvi import DRPVI, PEVI, R2PVI
+
+    return [
+        lambda th: R2PVI("tv", lam=0.3, beta=0.1, r_max=1.5, time_homogeneous=th),
+        lambda th: R2PVI("kl", lam=0.5, beta=0.1, r_max=1.5, time_homogeneous=th),
+        lambda th: R2PVI("chi2", lam=1.0, beta=0.1, r_max=1.5, time_homogeneous=th),
+        lambda th: PEVI(beta=0.2, penalty="elliptical", r_max=1.5, time_homogeneous=th),
+        lambda th: DRPVI(rho=0.2, beta=0.1, r_max=1.5, time_homogeneous=th),
+        lambda th: R2PVI("tv", lam=0.3, beta=0.1, r_max=1.5, variance_aware=True,
+                         time_homogeneous=th),
+    ]

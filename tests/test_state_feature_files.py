@@ -11,10 +11,11 @@ import warnings
 
 import numpy as np
 import pytest
+from helpers import pooled_or_per_step_estimators
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from r2pvi import DRPVI, PEVI, R2PVI, OfflineDataset
+from r2pvi import PEVI, R2PVI, OfflineDataset
 from r2pvi.data.storage import manifest as manifest_module
 from r2pvi.data.storage import state_files
 from r2pvi.data.storage.crossed import CrossedRows
@@ -96,13 +97,7 @@ def test_pooled_rows_of_an_opened_dataset_read_the_memory_mapped_file(tmp_path):
     assert _maps_a_file(phi.psi) and _maps_a_file(nxt.psi) and _maps_a_file(phi.actions)
 
 
-ESTIMATORS = [
-    lambda th: R2PVI("tv", lam=0.3, beta=0.1, r_max=1.5, time_homogeneous=th),
-    lambda th: R2PVI("kl", lam=0.5, beta=0.1, r_max=1.5, time_homogeneous=th),
-    lambda th: R2PVI("chi2", lam=1.0, beta=0.1, r_max=1.5, time_homogeneous=th),
-    lambda th: PEVI(beta=0.2, penalty="elliptical", r_max=1.5, time_homogeneous=th),
-    lambda th: DRPVI(rho=0.2, beta=0.1, r_max=1.5, time_homogeneous=th),
-]
+ESTIMATORS = pooled_or_per_step_estimators()[:5]
 
 
 @pytest.fixture(scope="module")

@@ -4,10 +4,11 @@ fixed point) give the numbers of the dense rows and of the full loop."""
 
 import numpy as np
 import pytest
+from helpers import pooled_or_per_step_estimators
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from r2pvi import DRPVI, PEVI, R2PVI, OfflineDataset
+from r2pvi import R2PVI, OfflineDataset
 from r2pvi.data.storage.crossed import CrossedRows, cross_rows
 from r2pvi.engine import backward_induction
 from r2pvi.engine.pooled import CrossedRidgeExpectation, PooledNextValues
@@ -169,15 +170,7 @@ def test_episode_datasets_in_the_state_layout_hold_the_dense_numbers(K, H, offse
                                       getattr(dense.subset(idx), name))
 
 
-ESTIMATORS = [
-    lambda th: R2PVI("tv", lam=0.3, beta=0.1, r_max=1.5, time_homogeneous=th),
-    lambda th: R2PVI("kl", lam=0.5, beta=0.1, r_max=1.5, time_homogeneous=th),
-    lambda th: R2PVI("chi2", lam=1.0, beta=0.1, r_max=1.5, time_homogeneous=th),
-    lambda th: PEVI(beta=0.2, penalty="elliptical", r_max=1.5, time_homogeneous=th),
-    lambda th: DRPVI(rho=0.2, beta=0.1, r_max=1.5, time_homogeneous=th),
-    lambda th: R2PVI("tv", lam=0.3, beta=0.1, r_max=1.5, variance_aware=True,
-                     time_homogeneous=th),
-]
+ESTIMATORS = pooled_or_per_step_estimators()
 
 
 @pytest.mark.filterwarnings("ignore::UserWarning")
