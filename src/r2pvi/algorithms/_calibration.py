@@ -27,31 +27,18 @@ from ..data import OfflineDataset
 from ..data.storage.crossed import CrossedRows
 from ..engine import pooled_steps
 from ..engine.pooled import CrossedRidgeExpectation
-from ..features.maps import as_feature_map
-from ._fqe import check_evaluation_dataset
+from ._fqe import check_evaluation_dataset, evaluation_features
 
 __all__ = ["behaviour_weights", "calibration_errors", "observed_returns"]
 
 
 def _state_features(dataset: OfflineDataset, evaluation_map):
-    """``(psi of the states (H, K, m), psi of the next states (H, K, m))``."""
+    """``(psi of the states (H, K, m), psi of the next states (H, K, m))``: the dataset's own
+    or ``evaluation_map``'s."""
     if evaluation_map is None:
         psi = np.asarray(dataset._source.phi.psi)
         return psi[:-1], psi[1:]
-    A = dataset.n_actions
-    emap = as_feature_map(evaluation_map, A)
-    if not hasattr(emap, "state_features"):
-        raise TypeError("evaluation_map must be a fitted observation transformer or a map "
-                        "crossed with the actions (r2pvi.features.cross_actions), got "
-                        f"{type(evaluation_map).__name__}")
-
-    def psi(obs):
-        obs = np.swapaxes(np.asarray(obs), 0, 1)  # (H, K, ...)
-        out = emap.state_features(obs.reshape((-1,) + obs.shape[2:]))
-        out = np.asarray(out.toarray() if hasattr(out, "toarray") else out, dtype=np.float64)
-        return out.reshape(obs.shape[0], obs.shape[1], -1)
-
-    return psi(dataset.states), psi(dataset.next_states)
+    return evaluation_features(dataset, evaluation_map)
 
 
 class _SarsaRows:

@@ -38,7 +38,7 @@ from ..engine import StepContext, pooled_steps
 from ..engine.pooled import CrossedRidgeExpectation, converged, next_penalty
 from ..features.maps import as_feature_map
 
-__all__ = ["policy_value", "check_evaluation_dataset"]
+__all__ = ["policy_value", "check_evaluation_dataset", "evaluation_features"]
 
 
 def _action_values(feats, w: np.ndarray) -> np.ndarray:
@@ -147,13 +147,11 @@ def check_evaluation_dataset(dataset: OfflineDataset) -> None:
             "it reads the observations and the taken actions of every step")
 
 
-def _evaluation_rows(dataset: OfflineDataset, evaluation_map):
-    """``(taken rows, next rows, initial features (K, A, d'))`` of the pooled steps under
-    ``evaluation_map``, from the observations of a dataset of episodes stored as state
-    features (its taken actions, ``-1`` after an episode's end, give the empty rows)."""
-    check_evaluation_dataset(dataset)
-    phi = dataset._source.phi
-    A, H, K = dataset.n_actions, dataset.horizon, dataset.n_trajectories
+def evaluation_features(dataset: OfflineDataset, evaluation_map):
+    """``(psi of the states, psi of the next states)``, each ``(H, K, m)`` step-major: the
+    state features of ``evaluation_map`` (a fitted observation transformer, or a map crossed
+    with the dataset's actions) at the observations of a dataset of episodes."""
+    A = dataset.n_actions
     emap = as_feature_map(evaluation_map, A)
     if getattr(emap, "n_actions", A) != A:
         raise ValueError(f"evaluation_map is crossed with {emap.n_actions} actions; the dataset "
@@ -162,21 +160,28 @@ def _evaluation_rows(dataset: OfflineDataset, evaluation_map):
         raise TypeError("evaluation_map must be a fitted observation transformer or a map "
                         "crossed with the actions (r2pvi.features.cross_actions), got "
                         f"{type(evaluation_map).__name__}")
+
+    def psi(obs):  # (K, H, ...) -> (H, K, m)
+        obs = np.swapaxes(np.asarray(obs), 0, 1)
+        out = emap.state_features(obs.reshape((-1,) + obs.shape[2:]))
+        out = np.asarray(out.toarray() if hasattr(out, "toarray") else out, dtype=np.float64)
+        return out.reshape(obs.shape[0], obs.shape[1], -1)
+
+    return psi(dataset.states), psi(dataset.next_states)
+
+
+def _evaluation_rows(dataset: OfflineDataset, evaluation_map):
+    """``(taken rows, next rows, initial features (K, A, d'))`` of the pooled steps under
+    ``evaluation_map``, from the observations of a dataset of episodes stored as state
+    features (its taken actions, ``-1`` after an episode's end, give the empty rows)."""
+    check_evaluation_dataset(dataset)
+    A, H, K = dataset.n_actions, dataset.horizon, dataset.n_trajectories
+    states, next_states = evaluation_features(dataset, evaluation_map)
     P = pooled_steps(H)
-
-    def psi(obs):
-        flat = np.asarray(obs)
-        out = emap.state_features(flat.reshape((-1,) + flat.shape[2:]))
-        return np.asarray(out.toarray() if hasattr(out, "toarray") else out, dtype=np.float64)
-
-    def step_major(obs):  # (K, P, ...) -> (P K, ...), row h K + k
-        return np.swapaxes(np.asarray(obs)[:, :P], 0, 1)
-
-    actions = np.asarray(phi.actions[:P]).reshape(P * K)
-    taken = CrossedRows(psi(step_major(dataset.states)), actions, A)
-    nxt = CrossedRows(psi(step_major(dataset.next_states)), None, A)
-    x0 = cross_rows(psi(np.asarray(dataset.states)[:, :1]), None, A)
-    return taken, nxt, x0
+    actions = np.asarray(dataset._source.phi.actions[:P]).reshape(P * K)
+    taken = CrossedRows(states[:P].reshape(P * K, -1), actions, A)
+    nxt = CrossedRows(next_states[:P].reshape(P * K, -1), None, A)
+    return taken, nxt, cross_rows(states[0], None, A)
 
 
 class _Policy:

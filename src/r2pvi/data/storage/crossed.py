@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._finite import map_origin
-from .fields import CHUNK, Field
+from .fields import CHUNK, Field, as_float64_chunks
 from .next_states import NextStates
 
 __all__ = ["CrossedRows", "CrossedField", "CrossedNext", "cross_rows"]
@@ -92,15 +92,9 @@ class CrossedRows:
 
     def chunks(self):
         """``(start, stop, psi (stop - start, m))`` in float64 (a view, or a reused buffer)."""
-        buf = None
-        for s in range(0, self.n, self.chunk):
-            e = min(self.n, s + self.chunk)
-            rows = self.psi[s:e]
-            if rows.dtype != np.float64:
-                if buf is None:
-                    buf = np.empty((min(self.chunk, self.n), self.m))
-                rows = np.copyto(buf[: e - s], rows) or buf[: e - s]
-            yield s, e, rows
+        n, c = self.n, self.chunk
+        return as_float64_chunks(((s, min(n, s + c), self.psi[s:s + c])
+                                  for s in range(0, n, c)), min(c, n))
 
     def dense(self) -> np.ndarray:
         """The rows as a float64 array ``(n, d)`` (or ``(n, A, d)``)."""

@@ -15,6 +15,20 @@ from ._finite import Origin, array_origin
 CHUNK = 1 << 12
 
 
+def as_float64_chunks(chunks, rows: int):
+    """``(start, stop, rows)`` of ``chunks`` with ``rows`` float64 and C-contiguous: the
+    chunk itself when it is, else a copy in one reused buffer (of ``rows`` rows at least: no
+    fresh allocation, so no page faults, per chunk)."""
+    f64 = None
+    for s, e, x in chunks:
+        if x.dtype != np.float64 or not x.flags.c_contiguous:
+            if f64 is None or f64.shape[0] < e - s:
+                f64 = np.empty((max(e - s, rows),) + x.shape[1:])
+            np.copyto(f64[: e - s], x)
+            x = f64[: e - s]
+        yield s, e, x
+
+
 def _float_dtype(dtype) -> np.dtype:
     """float32 or float64, else a ValueError naming the choices."""
     try:
@@ -93,14 +107,7 @@ class Field:
         """``(start, stop, rows)`` over step ``h`` with ``rows`` float64 and C-contiguous, to
         read, valid until the next iteration and not to be written (a reused buffer, or a
         view of the stored numbers)."""
-        f64 = None
-        for s, e, rows in self.chunks(h, chunk):
-            if rows.dtype != np.float64 or not rows.flags.c_contiguous:
-                if f64 is None or f64.shape[0] < e - s:
-                    f64 = np.empty((max(e - s, min(chunk, self.shape[1])),) + self.shape[2:])
-                np.copyto(f64[: e - s], rows)
-                rows = f64[: e - s]
-            yield s, e, rows
+        return as_float64_chunks(self.chunks(h, chunk), min(chunk, self.shape[1]))
 
     def step_rows(self, h: int, chunk: int, out: np.ndarray | None = None):
         """Step ``h``'s rows ``(K, ...)`` whole, in float64 (written into ``out``, a reused
