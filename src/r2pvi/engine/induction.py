@@ -212,9 +212,6 @@ def backward_induction(
                 if h == H - 1:
                     w = np.zeros(d)  # V_H = 0: the robust expectation of 0 is 0 for any divergence
                 else:
-                    qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
-                                      None if ellip is None else ellip[h + 1], (H - h - 1) * r_max,
-                                      check="next" not in checked)
                     if time_homogeneous:
                         if new_factor:  # the penalty of step h+1's factor, at every next state
                             pooled_values.set_penalty(penalty, beta, inv_diags[h + 1],
@@ -230,6 +227,9 @@ def backward_induction(
                         if keep_values:
                             next_state_values[h] = v_next
                     else:  # written in place: no K-sized temporary
+                        qmax = _NextValue(weights[h + 1], penalty, beta, inv_diags[h + 1],
+                                          None if ellip is None else ellip[h + 1],
+                                          (H - h - 1) * r_max, check="next" not in checked)
                         v_next = source.next_state_values(h, qmax, out=next_state_values[h])
                     if value_moments:  # only the variance-aware variants need them
                         unit_v = v_next / r_max  # in units of r_max: U^2 never overflows
