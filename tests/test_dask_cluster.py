@@ -8,6 +8,8 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import r2pvi
 
@@ -134,3 +136,59 @@ def test_scale_out_guide_runs_and_its_cluster_fit_equals_the_disk_fit(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.strip().splitlines()[-1] == "True"
+
+
+# ---------------------------------------------------------------- what a step sends and reads
+def test_a_steps_columns_are_scattered_to_the_worker_that_holds_its_features(client):
+    from r2pvi.data.storage.dask_tasks import scatter_parts
+
+    phi, rewards, next_phi = _arrays(K=8_000, H=3)
+    ds = r2pvi.OfflineDataset.from_dask(*_lazy(phi, rewards, next_phi, chunk=1_000))
+    field = ds._source.phi
+    for h in range(3):
+        chunks = field.step_chunks(h)
+        where = field.placement(h)  # once the persist has finished
+        holders = client.who_has(chunks)
+        assert where == [min(holders[c.key]) for c in chunks]
+        y = np.arange(8_000.0)[:, None]
+        parts = scatter_parts(y, field.bounds_of_chunks(), where)
+        held = client.who_has(parts)
+        assert [list(held[p.key]) for p in parts] == [[w] for w in where]
+        np.testing.assert_array_equal(np.concatenate(client.gather(parts)), y)
+    assert len(set(field.placement(0))) == 2  # both workers hold chunks: a real placement
+
+
+@pytest.mark.parametrize("cluster", [False, True])
+@settings(max_examples=25, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(order=st.permutations(range(7)), steps_per_block=st.integers(1, 8))
+def test_rewards_are_read_in_blocks_of_steps_whatever_the_order(client, monkeypatch, cluster,
+                                                                order, steps_per_block):
+    """Any order of steps returns each step's rewards; a backward pass (a fit's order)
+    computes once per block of steps."""
+    import contextlib
+
+    import dask
+    from dask.callbacks import Callback
+
+    from r2pvi.data.storage import dask_arrays
+
+    K, H = 300, 7
+    rewards = np.random.default_rng(steps_per_block).uniform(size=(K, H))
+    monkeypatch.setattr(dask_arrays, "READ_AHEAD_BYTES", steps_per_block * K * 8)
+    phi, _, next_phi = _arrays(K=K, H=H)
+    scheduler = contextlib.nullcontext() if cluster else dask.config.set(scheduler="threads")
+    def rewards_field():
+        return r2pvi.OfflineDataset.from_dask(
+            *_lazy(phi, rewards, next_phi, chunk=100))._source.rewards
+
+    with scheduler:
+        field = rewards_field()
+        for h in order:
+            np.testing.assert_array_equal(field.read(h), rewards[:, h])
+        if not cluster:  # the local scheduler's computes are counted by its callbacks
+            field, starts = rewards_field(), []
+            with Callback(start=lambda dsk: starts.append(1)):
+                for h in range(H - 1, -1, -1):
+                    np.testing.assert_array_equal(field.read(h), rewards[:, h])
+            assert len(starts) == -(-H // steps_per_block)

@@ -1,49 +1,119 @@
 """Dask arrays: a field held as a Dask array chunked along trajectories; the products a fit
-needs are formed on the workers (only ``d x m`` sums and ``K`` values reach the client)."""
+needs are formed on the workers (only ``d x m`` sums and ``K`` values reach the client).
+
+A fit's step costs two round trips to the workers (the next-state values, then the
+products of the rule's columns, which are scattered in between), each one task per
+trajectory chunk (:mod:`.dask_tasks`); the rewards of many steps come back in one.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
 from ._finite import NonFiniteRows, dask_origin
-from .fields import CHUNK, Field, as_float64_chunks
+from .dask_tasks import active_client, flat_keys, float64_rows, map_chunks, quiet, scatter_parts
+from .fields import Field
 from .memory import in_memory
 from .next_states import linear_values
 
+#: Bytes of one number per step and trajectory (rewards) read in one compute.
+READ_AHEAD_BYTES = 128 * 2**20
+
 
 class DaskField(Field):
-    """A field held as a Dask array ``(H, K, ...)`` chunked along trajectories."""
+    """A field held as a Dask array ``(H, K, ...)`` chunked along trajectories (one step per
+    chunk along the first axis, one chunk along the others: see ``from_dask``)."""
 
     storage = "dask"
 
     def __init__(self, array):
         self.array = array
         self.shape, self.dtype = tuple(array.shape), np.dtype(array.dtype)
-        self._persisted = None  # the array persisted on a distributed cluster (its client)
+        # on a distributed cluster: (client, persisted array, its chunks' futures by key)
+        self._persisted = None
+        self._placement = None  # (persisted array, the worker of each step's chunks)
+        self._block = None  # steps read ahead (see _read_block)
 
     def data(self):
         """The array to compute from: with a ``distributed`` client active, the array
-        persisted on its workers once (the first time it is asked), so that later graphs name
+        persisted on its workers once (the first time it is asked), so that later tasks name
         the workers' chunks instead of carrying the numbers; otherwise the array as given."""
         client = active_client()
         if client is None:
             return self.array
         if self._persisted is None or self._persisted[0] is not client:
-            self._persisted = (client, client.persist(self.array))
+            arr = client.persist(self.array)
+            self._persisted = (client, arr, {f.key: f for f in client.futures_of(arr)})
         return self._persisted[1]
 
     def __getstate__(self):
         # A field travels to the workers inside the tasks that name its errors: without the
-        # client and the persisted copy (neither belongs on a worker).
+        # client, the persisted copy and what was read (none of them belongs on a worker).
         state = dict(self.__dict__)
-        state["_persisted"] = None
+        state["_persisted"] = state["_placement"] = state["_block"] = None
         return state
 
     def origin(self, name):
         return dask_origin(name)
 
+    def bounds_of_chunks(self) -> np.ndarray:
+        """The trajectory chunks' boundaries ``(0, k_1, ..., K)``."""
+        return np.cumsum((0,) + tuple(self.array.chunks[1]))
+
+    def step_chunks(self, h) -> list:
+        """Step ``h``'s trajectory chunks in order, each ``(1, k, ...)``: the futures of the
+        persisted chunks on a ``distributed`` cluster, else the array's delayed blocks."""
+        arr = self.data()
+        if active_client() is not None:
+            futures = self._persisted[2]
+            return [futures[k] for k in flat_keys(arr.__dask_keys__()[h])]
+        return list(arr[h:h + 1].to_delayed().ravel())
+
+    def placement(self, h) -> list | None:
+        """The worker holding each trajectory chunk of step ``h`` on a ``distributed``
+        cluster, or None (no cluster, or a chunk held nowhere): asked of the scheduler once
+        per persisted array, for every step, when the persist has finished (a stale answer
+        only moves columns between workers)."""
+        client = active_client()
+        if client is None:
+            return None
+        arr = self.data()
+        if self._placement is None or self._placement[0] is not arr:
+            from distributed import wait
+
+            wait(list(self._persisted[2].values()))  # held once persisted (a fit needs them)
+            keys = [list(flat_keys(step)) for step in arr.__dask_keys__()]
+            futures = self._persisted[2]
+            owners = client.who_has([futures[k] for step in keys for k in step])
+            where = [[min(owners[k]) if owners.get(k) else None for k in step]
+                     for step in keys]
+            self._placement = (arr, where)
+        where = self._placement[1][h]
+        return None if any(w is None for w in where) else where
+
     def read(self, h, start=0, stop=None, out=None):
+        if self.array.ndim == 2 and start == 0 and stop is None:
+            return self._read_block(h)
         return np.asarray(self.data()[h, start:stop].compute())
+
+    def _read_block(self, h):
+        """Step ``h`` of a field of one number per step and trajectory (the rewards), read
+        with its neighbours: the steps ``[b, b + n)`` holding ``h`` (``n`` steps of
+        :data:`READ_AHEAD_BYTES`, blocks aligned at multiples of ``n``) come back in one
+        compute and are kept until each of them has been read once (a fit reads every step
+        once, backwards): one round trip for many steps (40 ms each at K = 1e6 here)."""
+        block = self._block
+        if block is None or block[0] is not self.data() or not block[1] <= h < block[2]:
+            n = max(1, READ_AHEAD_BYTES // max(1, self.shape[1] * self.dtype.itemsize))
+            lo = h - h % n
+            hi = min(self.shape[0], lo + n)
+            block = self._block = [self.data(), lo, hi,
+                                   np.asarray(self.data()[lo:hi].compute()), set()]
+        row = block[3][h - block[1]]
+        block[4].add(h)
+        if len(block[4]) == block[2] - block[1]:
+            self._block = None
+        return row
 
     def lazy(self):
         return self.array
@@ -54,14 +124,9 @@ class DaskField(Field):
     def subset(self, idx, name):
         return in_memory(self, idx, name)
 
-    def lazy_step(self, h):
-        """Step ``h`` as a lazy ``(K, d)`` Dask array chunked along trajectories only."""
-        x = self.data()[h]
-        return x.rechunk((x.chunks[0], -1))
-
     def chunks(self, h, chunk):
         # Dask's own chunks along trajectories, computed where the data is.
-        bounds = np.cumsum((0,) + tuple(self.array.chunks[1]))
+        bounds = self.bounds_of_chunks()
         for s, e in zip(bounds[:-1], bounds[1:], strict=True):
             yield int(s), int(e), self.read(h, int(s), int(e))
 
@@ -71,11 +136,11 @@ class DaskField(Field):
 
     def times(self, h, z, chunk):
         """``Phi_h @ z`` on the workers (one task per trajectory chunk)."""
-        x = self.lazy_step(h)
-        out = x.map_blocks(lambda b: _quiet_product(b, z),
-                           chunks=(x.chunks[0],) + z.shape[1:], dtype=np.float64,
-                           drop_axis=None if z.ndim == 2 else 1)
-        return np.asarray(out.compute(), dtype=np.float64)
+        def product(c):
+            with quiet():
+                return np.asarray(c[0], dtype=np.float64) @ z
+
+        return np.concatenate(map_chunks(self.step_chunks(h), product), axis=0)
 
     def products(self, h, cols, weights=None, with_gram=True):
         return _dask_products(self, h, cols, weights, with_gram)
@@ -96,62 +161,15 @@ class DaskField(Field):
         return bool((self.data()[:stop] >= 0).all().compute())
 
 
-def active_client():
-    """The ``distributed`` client Dask computes with, or None (Dask's local schedulers, or
-    ``distributed`` not installed)."""
-    try:
-        from distributed import default_client
-    except ImportError:  # pragma: no cover - dask without distributed
-        return None
-    try:
-        client = default_client()
-    except ValueError:  # no client
-        return None
-    import dask.base
-
-    return client if dask.base.get_scheduler() == client.get else None
-
-
-def _columns(y, chunks):
-    """``y (K, m)`` as a Dask array chunked like the features: on a ``distributed`` cluster
-    its chunks are scattered to the workers (the graph names them; a large graph would carry
-    the numbers), otherwise the array wrapped as it is."""
-    import dask.array as da
-
-    client = active_client()
-    if client is None:
-        return da.from_array(y, chunks=(chunks, -1))
-    bounds = np.cumsum((0,) + tuple(chunks))
-    parts = [y[s:e] for s, e in zip(bounds[:-1], bounds[1:], strict=True)]
-    futures = client.scatter(parts)
-    return da.concatenate([da.from_delayed(f, shape=p.shape, dtype=p.dtype)
-                           for f, p in zip(futures, parts, strict=True)])
-
-
-def _quiet():
-    """Dask's worker threads do not inherit the fit's ``np.errstate``: unchecked data may hold
-    infinities, whose products (``inf * 0``) must not warn before the fit's checks name them.
-    A new context each time (one ``errstate`` must not be entered by two threads at once)."""
-    return np.errstate(invalid="ignore", over="ignore")
-
-
-def _quiet_product(b, z):
-    with _quiet():
-        return np.asarray(b, dtype=np.float64) @ z
-
-
 def _dask_products(field: DaskField, h, cols, weights, with_gram):
     """``(Phi_h^T W Phi_h or None, [Phi_h^T W c for c in cols])`` summed on the Dask workers.
 
-    One task per trajectory chunk forms that chunk's products in float64 (the columns, and
-    the weights ``W``, travel to the workers with the graph), Dask adds the partial sums up
-    in a tree, and only the ``d x (d + m)`` sums reach the client: the step's features never
+    One task per trajectory chunk forms that chunk's products in float64 (the columns and
+    the weights ``W`` are scattered to the workers once, by chunk), and only each chunk's
+    ``d x (d + m)`` sums reach the client, which adds them up: the step's features never
     do. Equal to the local chunked sums up to the order of the additions.
     """
-    import dask.array as da
-
-    x = field.lazy_step(h)
-    K, d = x.shape
+    K, d = field.shape[1], field.shape[2]
     cols = [np.asarray(c, dtype=np.float64) for c in cols]
     widths = [1 if c.ndim == 1 else int(np.prod(c.shape[1:])) for c in cols]
     m = sum(widths)
@@ -165,20 +183,18 @@ def _dask_products(field: DaskField, h, cols, weights, with_gram):
     g = d if with_gram else 0
     width = g + m
 
-    def block(xb, yb):
+    def block(chunk, yb):
         out = np.zeros((d, width))
-        with _quiet():  # an infinity in the data is named by the client's check of the sums
-            for s, e, rows in _float64_rows(xb):  # float64 sub-chunks, one reused buffer
+        with quiet():  # an infinity in the data is named by the client's check of the sums
+            for s, e, rows in float64_rows(chunk[0]):  # float64 sub-chunks, one buffer
                 if with_gram:
                     xw = rows if weights is None else rows * yb[s:e, m:]
                     out[:, :d] += xw.T @ rows
                 out[:, g:] += rows.T @ yb[s:e, :m]
-        return out.reshape(1, d * width)
+        return out
 
-    nb = len(x.chunks[0])
-    parts = da.map_blocks(block, x, _columns(y, x.chunks[0]),
-                          chunks=((1,) * nb, (d * width,)), dtype=np.float64)
-    total = np.asarray(parts.sum(axis=0).compute(), dtype=np.float64).reshape(d, width)
+    parts = scatter_parts(y, field.bounds_of_chunks(), field.placement(h))
+    total = np.add.reduce(map_chunks(field.step_chunks(h), block, parts), axis=0)
     gram = total[:, :d].copy() if with_gram else None
     out, at = [], g
     for c, k in zip(cols, widths, strict=True):
@@ -200,61 +216,45 @@ class _ChunkNonFinite(Exception):
 def _dask_values(nxt, h, qmax):
     """Next-state values of a :class:`~.next_states.StoredNext` over a Dask field computed on
     the Dask workers, one task per trajectory chunk. The tasks carry ``qmax`` and the
-    persisted chunks' names, nothing of ``nxt`` (whose fields may hold their data)."""
-    import dask.array as da
-
-    feats = nxt.next_phi.data()[h]
+    chunk's first trajectory, nothing of ``nxt`` (whose fields may hold their data)."""
+    field = nxt.next_phi
     if nxt.nonnegative is None:  # once per dataset: it decides the linear form below
-        nxt.nonnegative = nxt.next_phi.nonnegative_steps(nxt.next_phi.shape[0] - 1)
+        nxt.nonnegative = field.nonnegative_steps(field.shape[0] - 1)
     nonneg = nxt.nonnegative
+    starts = [int(s) for s in field.bounds_of_chunks()[:-1]]
     lin = nxt.linear_form(qmax)
     if lin is not None:  # one matrix-vector product per sub-chunk, as in memory
         u, upper = lin
         check = getattr(qmax, "check", False)
 
-        def linear_block(f, block_info=None):
+        def linear_block(chunk, start):
+            f = chunk[0]
             try:
-                return linear_values(_float64_rows(f), u, upper, np.empty(len(f)), check)
+                return linear_values(float64_rows(f), u, upper, np.empty(len(f)), check)
             except NonFiniteRows as exc:
-                start = 0 if block_info is None else block_info[0]["array-location"][0][0]
-                raise _ChunkNonFinite(int(start), exc.index, exc.value, exc.known) from None
+                raise _ChunkNonFinite(start, exc.index, exc.value, exc.known) from None
 
-        return _compute_values(nxt, h, da.map_blocks(linear_block, feats, drop_axis=[1, 2],
-                                                     dtype=np.float64))
+        return _gather_values(nxt, h, field.step_chunks(h), linear_block, starts)
 
-    def block(f, k=None, block_info=None):
-        f = np.asarray(f, dtype=np.float64)
+    def block(chunk, start, k=None):
+        f = np.asarray(chunk[0], dtype=np.float64)
         nn = bool((f >= 0).all()) if nonneg is None else nonneg
         try:
-            with np.errstate(invalid="ignore", over="ignore"):  # not inherited from the fit
-                return qmax(f, None if k is None else np.asarray(k[..., 0], dtype=np.float64),
-                            nn)
-        except NonFiniteRows as exc:  # the block's first trajectory, from Dask
-            start = 0 if block_info is None else block_info[0]["array-location"][0][0]
-            raise _ChunkNonFinite(int(start), exc.index, exc.value, exc.known) from None
+            with quiet():  # not inherited from the fit
+                return qmax(f, None if k is None else np.asarray(k[0], dtype=np.float64), nn)
+        except NonFiniteRows as exc:  # the chunk's first trajectory
+            raise _ChunkNonFinite(start, exc.index, exc.value, exc.known) from None
 
-    if nxt.next_values is None:
-        v = da.map_blocks(block, feats, drop_axis=[1, 2], dtype=np.float64)
-    else:
-        kv = nxt.next_values.data()[h].rechunk((feats.chunks[0], -1))
-        v = da.map_blocks(block, feats, kv[:, :, None], drop_axis=[1, 2], dtype=np.float64)
-    return _compute_values(nxt, h, v)
+    known = [] if nxt.next_values is None else [nxt.next_values.step_chunks(h)]
+    return _gather_values(nxt, h, field.step_chunks(h), block, starts, *known)
 
 
-def _float64_rows(f, size: int = CHUNK):
-    """``(start, stop, rows)`` of ``f`` by ``size`` rows, in float64 (a view when ``f`` is
-    C-contiguous float64, else one reused buffer). The in-memory chunk size: a buffer that
-    stays in a core's L2 (8192 rows of ``A d = 60`` took the worker's task from about 5 ms to
-    65 ms)."""
-    n = len(f)
-    return as_float64_chunks(((s, min(n, s + size), f[s:s + size]) for s in range(0, n, size)),
-                             min(size, n))
-
-
-def _compute_values(nxt, h, v):
-    """The values ``v`` (a lazy ``(K,)`` array) computed, a chunk's non-finite entry named."""
+def _gather_values(nxt, h, chunks, fn, *args):
+    """The values ``fn`` computes on each chunk, gathered into ``(K,)``; a chunk's
+    non-finite entry named."""
     try:
-        return np.asarray(v.compute(), dtype=np.float64)
+        parts = map_chunks(chunks, fn, *args)
     except _ChunkNonFinite as exc:
         raise nxt.nonfinite(h, exc.start, NonFiniteRows(exc.index, exc.value, exc.known)) \
             from None
+    return np.concatenate([np.asarray(p, dtype=np.float64) for p in parts])
