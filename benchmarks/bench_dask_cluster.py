@@ -4,7 +4,8 @@ Builds seeded ``phi``, ``rewards``, ``next_phi`` with NumPy, wraps them with
 ``dask.array.from_array`` (chunks along trajectories), starts
 ``LocalCluster(processes=True, n_workers=2, threads_per_worker=1)`` and a ``Client``, and
 fits ``R2PVI('kl')`` and ``R2PVI('tv')`` from ``OfflineDataset.from_dask`` (the arrays as
-given, and persisted on the cluster first) and from ``OfflineDataset.from_features``. Prints
+given, and persisted on the cluster first; the latter also a second time, its step-major view
+already persisted by a first fit) and from ``OfflineDataset.from_features``. Prints
 wall and CPU (client process) seconds, the ratio to the in-memory fit, whether
 ``distributed`` warned of a large graph, and the largest weight difference::
 
@@ -157,8 +158,11 @@ def main(argv=None):
         from distributed import wait
 
         wait(persisted)
+        warm = r2pvi.OfflineDataset.from_dask(*persisted)
+        r2pvi.R2PVI("tv", lam=0.5, beta=0.1).fit(warm)  # from_dask's step-major view persisted
         kinds = {"memory": lambda: r2pvi.OfflineDataset.from_features(phi, rewards, next_phi),
-                 "dask persisted": lambda: r2pvi.OfflineDataset.from_dask(*persisted)}
+                 "dask persisted": lambda: r2pvi.OfflineDataset.from_dask(*persisted),
+                 "dask, fitted before": lambda: warm}
         if not args.skip_unpersisted:
             kinds["dask from_array"] = lambda: r2pvi.OfflineDataset.from_dask(*lazy())
         compare(kinds, args.divergences)

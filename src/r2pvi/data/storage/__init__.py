@@ -61,8 +61,9 @@ fit checks in data not checked when the dataset was built, and the errors naming
 ``fields`` (the field protocol, ``CHUNK``), ``npy`` (``.npy`` headers). One module per storage
 kind: ``memory`` (:class:`ArrayField`), ``files`` (:class:`FileField`: a file step streamed by
 chunk, ``pread`` and a cast or views of memory-mapped windows, ``MAP_WINDOW``),
-``dask_arrays`` (:class:`DaskField`, products formed on the workers), then the next-state
-forms ``next_states`` (:class:`NextStates`, :class:`StoredNext`, :class:`TableNext`),
+``dask_tasks`` and ``dask_arrays`` (:class:`DaskField`, products formed on the workers),
+then the next-state forms ``next_states`` (:class:`NextStates`, :class:`StoredNext`,
+:class:`TableNext`),
 ``sparse_rows`` (:class:`SparseRowsField`, :class:`SparseNext`: one CSR matrix per step),
 ``observations`` (:class:`MappedField`, :class:`MapNext`), ``format`` (manifest names, atomic
 directories), ``behaviour`` (the behaviour form, ``SIDE_BLOCK``), ``source``
