@@ -2,6 +2,8 @@
 rows exactly, and pooled fits on them (one operator, the penalty formed once, a stop at a
 fixed point) give the numbers of the dense rows and of the full loop."""
 
+from unittest.mock import patch
+
 import numpy as np
 import pytest
 from helpers import pooled_or_per_step_estimators
@@ -10,6 +12,7 @@ from hypothesis import strategies as st
 
 from r2pvi import R2PVI, OfflineDataset
 from r2pvi.data.storage.crossed import CrossedRows, cross_rows
+from r2pvi.duals import crossed_blocks
 from r2pvi.engine import backward_induction
 from r2pvi.engine.pooled import CrossedRidgeExpectation, PooledNextValues
 from r2pvi.engine.q import _NextValue
@@ -94,12 +97,13 @@ def test_crossed_operator_is_the_ridge_regression_of_the_dense_rows(n, m, seed):
 @given(n=st.integers(1, 200), m=st.integers(1, 5), A=st.integers(1, 3),
        moments=st.sampled_from([2, 3]), group=st.sampled_from([1, 2, 5]),
        extra=st.integers(0, 3), weighted=st.booleans(), f32=st.booleans(),
-       seed=st.integers(0, 2**16))
+       batch=st.sampled_from([1, 2, 3, 128]), seed=st.integers(0, 2**16))
 def test_crossed_sorted_blocks_equal_the_sorted_blocks_of_the_dense_rows(
-        n, m, A, moments, group, extra, weighted, f32, seed):
-    # signed psi, empty rows (-1), ties in the values, extra breakpoints, sample weights: the
-    # block sums, their |M| bounds, the refined sums and the exact weights of (factor, block)
-    # pairs, without forming the rows, equal those of the dense rows' ridge operator
+        n, m, A, moments, group, extra, weighted, f32, batch, seed):
+    # signed psi, empty rows (-1), ties in the values, extra breakpoints, sample weights,
+    # batches of blocks that cut the groups or hold them all: the block sums, their |M|
+    # bounds, the refined sums and the exact weights of (factor, block) pairs, without
+    # forming the rows, equal those of the dense rows' ridge operator
     rng = np.random.default_rng(seed)
     psi = rng.standard_normal((n, m)).astype(np.float32 if f32 else np.float64)
     acts = rng.integers(-1, A, n)
@@ -109,7 +113,8 @@ def test_crossed_sorted_blocks_equal_the_sorted_blocks_of_the_dense_rows(
     dense.phi  # noqa: B018  (forms the rows: the dense operator's sorted blocks)
     v = rng.integers(0, 6, n) * rng.standard_normal()  # ties
     ex = rng.standard_normal(extra)
-    a = crossed.sorted_blocks(v, ex, moments, group)
+    with patch.object(crossed_blocks, "BATCH_BLOCKS", batch):
+        a = crossed.sorted_blocks(v, ex, moments, group)
     b = dense.sorted_blocks(v, ex, moments, group)
     assert crossed._dense is None  # the rows were never formed
     tol = {"rtol": 1e-10, "atol": 1e-12}

@@ -210,17 +210,11 @@ def blocks_from_weights(alphas, weights, m, moments: int = 3, group: int = 1) ->
 
 
 def blocks_from_features(alphas, xs, m, gram_inv, nonneg: bool, moments: int = 3,
-                         group: int = 1, actions: np.ndarray | None = None) -> SortedBlocks:
+                         group: int = 1) -> SortedBlocks:
     """:class:`SortedBlocks` of the ridge weights ``M = Lambda^{-1} X^T`` from the (weighted)
     feature rows in sorted order ``xs (p, d)`` and ``gram_inv = Lambda^{-1}``; ``nonneg``:
-    the rows are known non-negative (then ``|X| = X``).
-
-    With ``actions (p,)`` the rows are crossed, ``x_k = e_{a_k} (x) psi_k``: ``xs (p, m')``
-    holds ``psi`` in sorted order, ``actions[k]`` the block of row ``k`` (-1: a zero row), and
-    ``d = A m'`` (:class:`~r2pvi.engine.pooled.CrossedRidgeExpectation`). The rows are never
-    formed: each action's block sums are the sums of ``psi`` with the other actions' powers
-    masked out, and ``Lambda^{-1}`` is block diagonal (a factor's exact weights read its own
-    action's rows only). The same numbers as the dense rows, up to rounding.
+    the rows are known non-negative (then ``|X| = X``). (Rows crossed with the actions, never
+    formed: :func:`~r2pvi.duals.crossed_blocks.blocks_from_crossed`.)
 
     ``M`` is linear in the features: each block of 16 is summed in feature space (one batched
     product), those sums are added up by groups, and only the groups' ``(nc, d)`` sums are
@@ -233,21 +227,8 @@ def blocks_from_features(alphas, xs, m, gram_inv, nonneg: bool, moments: int = 3
     nb = x3.shape[0]
     powers = _block_powers(alphas, moments)  # (nb, moments, 16)
     fsum = buffer("ridge.fsum", (nb, moments, d))  # (nb, moments, d)
-    if actions is None:
-        np.matmul(powers, x3, out=fsum)
-        fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)  # (nb, d)
-    else:
-        mp, a3 = xs.shape[1], actions.reshape(nb, BLOCK)
-        n_act = d // mp
-        # one batched product for every action: the powers of action a's rows (zero on the
-        # others') stacked (nb, A (moments + 1), 16); the last of each action's rows: |psi|
-        masked = np.zeros((nb, n_act, moments, BLOCK))
-        for a in range(n_act):
-            np.multiply(powers, a3[:, None, :] == a, out=masked[:, a])
-        prod = np.matmul(masked.reshape(nb, -1, BLOCK), x3).reshape(nb, n_act, moments, mp)
-        fsum.reshape(nb, moments, n_act, mp)[...] = prod.transpose(0, 2, 1, 3)
-        fabs = (fsum[:, 0] if nonneg else
-                np.matmul(masked[:, :, 0], np.abs(x3)).reshape(nb, d))
+    np.matmul(powers, x3, out=fsum)
+    fabs = fsum[:, 0] if nonneg else np.abs(x3).sum(axis=1)  # (nb, d)
     csum = group_sums(fsum, group)
     # (moments, d, nc) C-ordered, so that the per-factor running sums over blocks read rows:
     # Lambda^{-1} times the transposed sums, straight into a work buffer (BLAS reads the
@@ -255,15 +236,8 @@ def blocks_from_features(alphas, xs, m, gram_inv, nonneg: bool, moments: int = 3
     sums = buffer("ridge.sums", (moments, d, csum.shape[0]))
     abs_inv = np.abs(gram_inv)
     cabs = csum[:, 0] if nonneg else group_sums(fabs, group)
-    if actions is None:
-        np.matmul(gram_inv, csum.transpose(1, 2, 0), out=sums)
-        sabs = abs_inv @ cabs.T
-    else:  # Lambda^{-1} is block diagonal: one action's block at a time
-        sabs = np.empty((d, csum.shape[0]))
-        for a in range(d // mp):
-            blk = slice(a * mp, (a + 1) * mp)
-            sums[:, blk] = np.matmul(gram_inv[blk, blk], csum[:, :, blk].transpose(1, 2, 0))
-            sabs[blk] = abs_inv[blk, blk] @ cabs[:, blk].T
+    np.matmul(gram_inv, csum.transpose(1, 2, 0), out=sums)
+    sabs = abs_inv @ cabs.T
 
     def fine(rows, blocks):
         # Lambda^{-1} (and |Lambda^{-1}|) on the feature sums of the distinct blocks asked for
@@ -281,15 +255,7 @@ def blocks_from_features(alphas, xs, m, gram_inv, nonneg: bool, moments: int = 3
         return out[:moments], out[moments]
 
     def pairs(rows, blocks):
-        if actions is None:
-            return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]  # (P, 16)
-        # factor i = (action i // m', feature): its row of Lambda^{-1} on its own block, on the
-        # block's psi rows of that action (zero on the others)
-        act = rows // mp
-        own = gram_inv[rows].reshape(rows.size, -1, mp)[np.arange(rows.size), act]
-        out = np.matmul(x3[blocks], own[:, :, None])[:, :, 0]
-        out *= a3[blocks] == act[:, None]
-        return out
+        return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]  # (P, 16)
 
     return SortedBlocks(alphas, m, group, sums, sabs, fine, pairs)
 

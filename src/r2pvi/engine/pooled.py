@@ -16,10 +16,10 @@ import numpy as np
 from ..data.storage._finite import check_next_products
 from ..data.storage.crossed import CrossedRows
 from ..data.storage.sparse_rows import flat_rows
-from ..duals._scratch import buffer
+from ..duals.crossed_blocks import blocks_from_crossed
 from ..duals.gram import GramFactor, ridge_cholesky
 from ..duals.operator import RidgeExpectation
-from ..duals.sorting import blocks_from_features, sort_breakpoints
+from ..duals.sorting import sort_breakpoints
 from .penalty import penalty_values
 from .q import _max_over_actions
 
@@ -105,28 +105,22 @@ class CrossedRidgeExpectation(RidgeExpectation):
 
     def sorted_blocks(self, v, breakpoints_extra=(), moments: int = 3, group: int = 1):
         """:meth:`~r2pvi.duals.RidgeExpectation.sorted_blocks` from ``psi`` and the actions in
-        sorted order (:func:`~r2pvi.duals.sorting.blocks_from_features` with ``actions``):
-        the ``(n, d)`` rows are not formed, and the gathered rows are ``A`` times narrower."""
+        sorted order (:func:`~r2pvi.duals.crossed_blocks.blocks_from_crossed`): the ``(n, d)``
+        rows are not formed, nor ``psi`` in sorted order (a batch of blocks at a time)."""
         if self._dense is not None:
             return super().sorted_blocks(v, breakpoints_extra, moments, group)
         rows = self.crossed
         alphas, src, m = sort_breakpoints(v, breakpoints_extra)
-        xs = buffer("crossed.xs", (src.size, rows.m))
-        if rows.psi.dtype == np.float64:
-            np.take(rows.psi, src, axis=0, mode="clip", out=xs)
-        else:  # float32 storage: gathered, then widened
-            xs[...] = np.take(rows.psi, src, axis=0, mode="clip")
         acts = np.take(rows.actions, src, mode="clip")
-        if self.weights is not None:
-            xs *= np.take(self.weights, src, mode="clip")[:, None]
         if m < src.size or len(breakpoints_extra):  # extras and padding: zero rows
             acts[src < 0] = -1
+        scale = None if self.weights is None else np.take(self.weights, src, mode="clip")
         if self.nonnegative_features is None:
             self.nonnegative_features = bool(rows.nonnegative())
         nonneg = self.nonnegative_features and self.weights is None
         linv = self.chol_inverse
-        return blocks_from_features(alphas, xs, m, linv.T @ linv, nonneg, moments, group,
-                                    actions=acts)
+        return blocks_from_crossed(alphas, rows.psi, src, acts, m, linv.T @ linv, nonneg,
+                                   moments, group, scale)
 
     def gram_diagonal_and_sums(self):
         """``(diag(Phi^T W Phi), Phi^T W 1, non-empty rows, their total weight)`` for the fit's
