@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._scratch import buffer
-from .sorting import BLOCK, SortedBlocks, fine_blocks, group_sums
+from .sorting import BLOCK, SortedBlocks, group_sums, refined_sums
 
 __all__ = ["blocks_from_crossed"]
 
@@ -93,21 +93,8 @@ def blocks_from_crossed(alphas, psi, src, actions, m, gram_inv, nonneg: bool,
         sums[:, blk] = np.matmul(gram_inv[blk, blk], csum[:, :, blk].transpose(1, 2, 0))
         sabs[blk] = abs_inv[blk, blk] @ cabs[:, blk].T
 
-    def fine(rows, blocks):
-        # Lambda^{-1} (and |Lambda^{-1}|) on the sums of the distinct blocks asked for only
-        # (U of them; a mask and its running count instead of np.unique's sort), formed again
-        seen = np.zeros(nc, dtype=bool)
-        seen[blocks] = True
-        ub = np.flatnonzero(seen)
-        inv = (np.cumsum(seen) - 1)[blocks]
-        idx = fine_blocks(ub, group, nb).ravel()  # (U group,)
-        f, fa = block_sums(idx)
-        mapped = np.empty((moments + 1, d, idx.size))
-        np.matmul(gram_inv, f.transpose(1, 2, 0), out=mapped[:moments])
-        np.matmul(abs_inv, fa.T, out=mapped[moments])
-        out = mapped.reshape(moments + 1, d, ub.size, group)[
-            :, rows[:, None], inv[:, None], np.arange(group)]  # (moments + 1, P, group)
-        return out[:moments], out[moments]
+    def fine(rows, blocks):  # the blocks asked for, formed again from psi
+        return refined_sums(rows, blocks, group, nb, gram_inv, abs_inv, block_sums)
 
     def pairs(rows, blocks):
         # factor i = (action i // m', feature): its row of Lambda^{-1} on its own block, on

@@ -240,24 +240,34 @@ def blocks_from_features(alphas, xs, m, gram_inv, nonneg: bool, moments: int = 3
     sabs = abs_inv @ cabs.T
 
     def fine(rows, blocks):
-        # Lambda^{-1} (and |Lambda^{-1}|) on the feature sums of the distinct blocks asked for
-        # only (U of them; a mask and its running count instead of np.unique's sort).
-        seen = np.zeros(csum.shape[0], dtype=bool)
-        seen[blocks] = True
-        ub = np.flatnonzero(seen)
-        inv = (np.cumsum(seen) - 1)[blocks]
-        idx = fine_blocks(ub, group, nb).ravel()  # (U group,)
-        mapped = np.empty((moments + 1, d, idx.size))
-        np.matmul(gram_inv, fsum[idx].transpose(1, 2, 0), out=mapped[:moments])
-        np.matmul(abs_inv, fabs[idx].T, out=mapped[moments])
-        out = mapped.reshape(moments + 1, d, ub.size, group)[
-            :, rows[:, None], inv[:, None], np.arange(group)]  # (moments + 1, P, group)
-        return out[:moments], out[moments]
+        return refined_sums(rows, blocks, group, nb, gram_inv, abs_inv,
+                            lambda idx: (fsum[idx], fabs[idx]))
 
     def pairs(rows, blocks):
         return np.matmul(x3[blocks], gram_inv[rows][:, :, None])[:, :, 0]  # (P, 16)
 
     return SortedBlocks(alphas, m, group, sums, sabs, fine, pairs)
+
+
+def refined_sums(rows, blocks, group: int, nb: int, gram_inv, abs_inv, feature_sums):
+    """The ``fine(rows, blocks)`` of :class:`SortedBlocks` built from feature sums:
+    ``Lambda^{-1}`` (and ``|Lambda^{-1}|``) on the feature sums of the blocks of 16 inside the
+    distinct blocks of ``16 group`` asked for only (U of them; a mask and its running count
+    instead of ``np.unique``'s sort). ``feature_sums(idx)`` gives ``(sums (k, moments, d),
+    |X| sums (k, d))`` of the blocks of 16 ``idx``; ``nb`` counts the blocks of 16."""
+    seen = np.zeros(-(-nb // group), dtype=bool)
+    seen[blocks] = True
+    ub = np.flatnonzero(seen)
+    inv = (np.cumsum(seen) - 1)[blocks]
+    idx = fine_blocks(ub, group, nb).ravel()  # (U group,)
+    f, fa = feature_sums(idx)
+    moments, d = f.shape[1], f.shape[2]
+    mapped = np.empty((moments + 1, d, idx.size))
+    np.matmul(gram_inv, f.transpose(1, 2, 0), out=mapped[:moments])
+    np.matmul(abs_inv, fa.T, out=mapped[moments])
+    out = mapped.reshape(moments + 1, d, ub.size, group)[
+        :, rows[:, None], inv[:, None], np.arange(group)]  # (moments + 1, P, group)
+    return out[:moments], out[moments]
 
 
 def cumulants_from_weights(alphas, weights, m) -> TruncationCumulants:
