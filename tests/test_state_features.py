@@ -97,13 +97,14 @@ def test_crossed_operator_is_the_ridge_regression_of_the_dense_rows(n, m, seed):
 @given(n=st.integers(1, 200), m=st.integers(1, 5), A=st.integers(1, 3),
        moments=st.sampled_from([2, 3]), group=st.sampled_from([1, 2, 5]),
        extra=st.integers(0, 3), weighted=st.booleans(), f32=st.booleans(),
-       batch=st.sampled_from([1, 2, 3, 128]), seed=st.integers(0, 2**16))
+       batch=st.sampled_from([1, 2, 3, 128]), keep=st.booleans(), seed=st.integers(0, 2**16))
 def test_crossed_sorted_blocks_equal_the_sorted_blocks_of_the_dense_rows(
-        n, m, A, moments, group, extra, weighted, f32, batch, seed):
+        n, m, A, moments, group, extra, weighted, f32, batch, keep, seed):
     # signed psi, empty rows (-1), ties in the values, extra breakpoints, sample weights,
-    # batches of blocks that cut the groups or hold them all: the block sums, their |M|
-    # bounds, the refined sums and the exact weights of (factor, block) pairs, without
-    # forming the rows, equal those of the dense rows' ridge operator
+    # batches of blocks that cut the groups or hold them all, the blocks' sums kept or formed
+    # again when refined: the block sums, their |M| bounds, the refined sums and the exact
+    # weights of (factor, block) pairs, without forming the rows, equal those of the dense
+    # rows' ridge operator
     rng = np.random.default_rng(seed)
     psi = rng.standard_normal((n, m)).astype(np.float32 if f32 else np.float64)
     acts = rng.integers(-1, A, n)
@@ -113,6 +114,7 @@ def test_crossed_sorted_blocks_equal_the_sorted_blocks_of_the_dense_rows(
     dense.phi  # noqa: B018  (forms the rows: the dense operator's sorted blocks)
     v = rng.integers(0, 6, n) * rng.standard_normal()  # ties
     ex = rng.standard_normal(extra)
+    crossed._keep_blocks = keep
     with patch.object(crossed_blocks, "BATCH_BLOCKS", batch):
         a = crossed.sorted_blocks(v, ex, moments, group)
     b = dense.sorted_blocks(v, ex, moments, group)

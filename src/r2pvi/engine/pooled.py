@@ -25,6 +25,10 @@ from .q import _max_over_actions
 
 __all__ = ["CrossedRidgeExpectation", "next_penalty", "PooledNextValues", "converged"]
 
+#: A dual that refines more than this share of the sorted blocks has every block's sums kept
+#: from then on (measured: DRPVI refines about 60 % of them, chi^2 under 2 %).
+KEEP_SHARE = 0.25
+
 # Consecutive pooled steps whose weights differ by at most this (relative to the largest
 # weight, at least 1) are a fixed point: the fit copies them to the remaining steps.
 STOP_RTOL = 1e-10
@@ -62,6 +66,7 @@ class CrossedRidgeExpectation(RidgeExpectation):
                  nonnegative_features=None):
         self.crossed, self.gamma = rows, float(gamma)
         self._dense = None
+        self._keep_blocks = False  # keep every sorted block's sums (see _refined)
         super().__init__(_Rows(rows.shape), None, weights, nonnegative_features)
 
     def _hold(self, phi, chol) -> None:
@@ -120,7 +125,15 @@ class CrossedRidgeExpectation(RidgeExpectation):
         nonneg = self.nonnegative_features and self.weights is None
         linv = self.chol_inverse
         return blocks_from_crossed(alphas, rows.psi, src, acts, m, linv.T @ linv, nonneg,
-                                   moments, group, scale)
+                                   moments, group, scale, keep=self._keep_blocks,
+                                   refined=self._refined)
+
+    def _refined(self, share: float) -> None:
+        """A dual refined ``share`` of the sorted blocks: when it is large, later calls keep
+        every block's sums rather than form the refined ones again (see
+        :func:`~r2pvi.duals.crossed_blocks.blocks_from_crossed`)."""
+        if share > KEEP_SHARE:
+            self._keep_blocks = True
 
     def gram_diagonal_and_sums(self):
         """``(diag(Phi^T W Phi), Phi^T W 1, non-empty rows, their total weight)`` for the fit's
