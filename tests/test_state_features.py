@@ -255,3 +255,20 @@ def test_per_step_fits_on_the_state_layout_report_what_dense_rows_report():
     np.testing.assert_array_equal(a.rows, b.rows)
     np.testing.assert_allclose(a.constant_fit, b.constant_fit, rtol=1e-12)
     np.testing.assert_array_equal(a.absorbing, b.absorbing)
+
+
+@pytest.mark.parametrize("saved", [False, True])
+def test_a_subset_of_state_features_holds_one_copy_of_them_and_fits_as_the_dense_subset(
+        tmp_path, saved):
+    rng = np.random.default_rng(11)
+    crossed, dense = _both(_episodes(rng, 30, max_len=9), 8, reward_offset=0.5)
+    if saved:
+        crossed = OfflineDataset.open(crossed.save(tmp_path / "states"))
+    idx = np.array([3, 0, 17, 17, 29, 5])
+    sub = crossed[idx]
+    src = sub._source
+    assert src.phi.psi is src.next.psi  # taken actions and next states share one copy
+    assert not np.shares_memory(src.phi.psi, crossed._source.phi.psi)
+    est = R2PVI("tv", lam=0.3, beta=0.1, time_homogeneous=True, r_max=2.0)
+    a, b = est.fit(sub).weights_, R2PVI(**est.get_params()).fit(dense[idx]).weights_
+    np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)

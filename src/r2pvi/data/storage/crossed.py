@@ -262,9 +262,12 @@ class CrossedNext(NextStates):
             known = np.asarray(self.next_values.lazy(), dtype=float).reshape(-1, self.n_actions)[:n]
         return rows, known
 
-    def take(self, idx):
+    def take(self, idx, psi: np.ndarray | None = None):
+        """The next states of the trajectories ``idx``; ``psi``: their observations' features
+        already taken (the taken-action field's subset shares them: one copy, not two)."""
         nv = None if self.next_values is None else self.next_values.subset(idx, "next_values")
-        return CrossedNext(_readonly(self.psi[:, idx]), self.n_actions, nv, self.nonnegative)
+        psi = _readonly(self.psi[:, idx]) if psi is None else psi
+        return CrossedNext(psi, self.n_actions, nv, self.nonnegative)
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:

@@ -262,11 +262,21 @@ class StepSource:
             extras[k] = np.asarray(v[idx])
             extras[k].flags.writeable = False
         phi, rewards = self.phi.subset(idx, "phi"), self.rewards.subset(idx, "rewards")
-        return StepSource(phi, rewards, self.next.take(idx), extras, self.nonnegative_phi,
+        return StepSource(phi, rewards, self._take_next(idx, phi), extras, self.nonnegative_phi,
                           self.chunk, unit_rows=self.unit_rows, reward_noise=self.reward_noise,
                           row_sums=self.phi_row_sums,  # a subset's sums lie in the range
                           checked=self.checked,  # the same numbers, checked or not
                           stationary=self.stationary, reward_offset=self.reward_offset)
+
+
+    def _take_next(self, idx, phi) -> NextStates:
+        """The next states of the trajectories ``idx``; with state features whose taken-action
+        field and next states share one ``psi`` (``from_episodes``), sharing its subset
+        ``phi``'s copy."""
+        if getattr(self.next, "psi", None) is not None and \
+                getattr(self.phi, "psi", None) is self.next.psi:
+            return self.next.take(idx, psi=phi.psi)
+        return self.next.take(idx)
 
 
 def _check_stored(value: np.ndarray, name: str, what: str, path) -> None:
