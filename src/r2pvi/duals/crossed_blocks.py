@@ -102,8 +102,8 @@ def blocks_from_crossed(alphas, psi, src, actions, m, gram_inv, nonneg: bool,
     sums = buffer("ridge.sums", (moments, d, nc))
     abs_inv = np.abs(gram_inv)
     sabs = np.empty((d, nc))
-    for a in range(n_act):
-        blk = slice(a * mp, (a + 1) * mp)
+    diagonal = [slice(a * mp, (a + 1) * mp) for a in range(n_act)]
+    for blk in diagonal:
         sums[:, blk] = np.matmul(gram_inv[blk, blk], csum[:, :, blk].transpose(1, 2, 0))
         sabs[blk] = abs_inv[blk, blk] @ cabs[:, blk].T
 
@@ -113,7 +113,7 @@ def blocks_from_crossed(alphas, psi, src, actions, m, gram_inv, nonneg: bool,
         return (kept[idx], kept_abs[idx]) if keep else block_sums(idx)
 
     def fine(rows, blocks):
-        return refined_sums(rows, blocks, group, nb, gram_inv, abs_inv, sums_of)
+        return refined_sums(rows, blocks, group, nb, gram_inv, abs_inv, sums_of, diagonal)
 
     def pairs(rows, blocks):
         # factor i = (action i // m', feature): its row of Lambda^{-1} on its own block, on
