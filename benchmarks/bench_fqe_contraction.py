@@ -12,8 +12,10 @@ candidate's greedy policy at step 1 (clip and known values as it acts)::
     python benchmarks/bench_fqe_contraction.py --task acrobot
     python benchmarks/bench_fqe_contraction.py --task cartpole
 
-The result (docs/user_guide/model-selection.md): every radius is below 1 and they barely
-differ between the candidates FQE ranks right and wrong, so instability is not the cause.
+It also prints the median feature mass ``sum phi_i^2`` of the evaluation map over the
+training transitions. The result (docs/user_guide/model-selection.md): on Acrobot every
+radius is below 1 and the candidates FQE ranks right and wrong barely differ, so instability
+is not the cause there.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import warnings
 import numpy as np
 from bench_selection import acrobot_task, cartpole_task
 
-from r2pvi.algorithms._fqe import _Policy, _Rows
+from r2pvi.algorithms._fqe import _Policy, _Rows, evaluation_features
 
 
 def fqe_radius(est, data, evaluation_map, gamma: float, step: int = 1) -> float:
@@ -53,12 +55,25 @@ def fqe_radius(est, data, evaluation_map, gamma: float, step: int = 1) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(np.linalg.solve(lam, cross)))))
 
 
+def feature_mass(data, evaluation_map) -> float:
+    """The median over the evaluation map's features of ``sum phi_i^2`` over the dataset's
+    transitions (a feature is a state feature crossed with an action)."""
+    states, _ = evaluation_features(data, evaluation_map)
+    actions = np.asarray(data._source.phi.actions)
+    masses = [(states[actions == a] ** 2).sum(axis=0) for a in range(data.n_actions)]
+    return float(np.median(np.concatenate(masses)))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", choices=["cartpole", "acrobot"], default="acrobot")
     args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
     task = acrobot_task(False) if args.task == "acrobot" else cartpole_task(False)
+    first = task.dataset(task.grid[0].feature_map)
+    n = int((np.asarray(first._source.phi.actions) >= 0).sum())
+    print(f"{args.task}: {n} transitions; median feature mass of the evaluation map: "
+          f"{feature_mass(first, task.eval_map):.3f}")
     print(f"{'candidate':<34} {'map':<7} {'rho (gamma 0.01)':>17} {'rho (gamma 1)':>14}")
     for cand in task.grid:
         data = task.dataset(cand.feature_map)
