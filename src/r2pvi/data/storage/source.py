@@ -268,7 +268,6 @@ class StepSource:
                           checked=self.checked,  # the same numbers, checked or not
                           stationary=self.stationary, reward_offset=self.reward_offset)
 
-
     def _take_next(self, idx, phi) -> NextStates:
         """The next states of the trajectories ``idx``; with state features whose taken-action
         field and next states share one ``psi`` (``from_episodes``), sharing its subset
