@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._scratch import buffer
-from .sorting import BLOCK, SortedBlocks, group_sums, refined_sums
+from .sorting import BLOCK, SortedBlocks, _block_powers, group_sums, refined_sums
 
 __all__ = ["blocks_from_crossed"]
 
@@ -71,7 +71,7 @@ def blocks_from_crossed(alphas, psi, src, actions, m, gram_inv, nonneg: bool,
         # so that the product is laid out as the factors: factor a m' + j of power p at
         # [b, p, a m' + j]
         masked = buffer("crossed.masked", (k, moments, n_act, BLOCK))
-        pw, acts = _powers(a16[blocks], moments), a3[blocks]
+        pw, acts = _block_powers(a16[blocks], moments, "crossed.powers"), a3[blocks]
         for a in range(n_act):
             np.multiply(pw, acts[:, None, :] == a, out=masked[:, :, a])
         f = buffer("crossed.f", (k, moments, d))
@@ -129,13 +129,3 @@ def blocks_from_crossed(alphas, psi, src, actions, m, gram_inv, nonneg: bool,
 
     return SortedBlocks(alphas, m, group, sums, sabs, fine, pairs)
 
-
-def _powers(a, moments: int) -> np.ndarray:
-    """``(k, moments, 16)``: 1, alpha (and alpha^2) of the blocks ``a (k, 16)``, as
-    :func:`~r2pvi.duals.sorting._block_powers` forms them (a reused buffer)."""
-    out = buffer("crossed.powers", (a.shape[0], moments, BLOCK))
-    out[:, 0] = 1.0
-    out[:, 1] = a
-    if moments > 2:
-        np.multiply(a, a, out=out[:, 2])
-    return out

@@ -118,10 +118,11 @@ def sort_breakpoints(v, extra=()) -> tuple[np.ndarray, np.ndarray, int]:
     return alphas, src, m
 
 
-def _block_powers(alphas: np.ndarray, moments: int = 3) -> np.ndarray:
-    """``(nb, moments, 16)``: 1, alpha (and alpha^2) of every sorted point, by block."""
+def _block_powers(alphas: np.ndarray, moments: int = 3, key: str = "blocks.powers") -> np.ndarray:
+    """``(nb, moments, 16)``: 1, alpha (and alpha^2) of every sorted point, by block (in the
+    reused buffer ``key``)."""
     a3 = alphas.reshape(-1, BLOCK)
-    out = buffer("blocks.powers", (a3.shape[0], moments, BLOCK))
+    out = buffer(key, (a3.shape[0], moments, BLOCK))
     out[:, 0] = 1.0
     out[:, 1] = a3
     if moments > 2:
