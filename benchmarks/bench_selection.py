@@ -71,7 +71,7 @@ from r2pvi import DRPVI, PEVI, R2PVI, OfflineDataset
 from r2pvi.episodes import episode_observations
 from r2pvi.features import NormalizedRBF, cross_actions
 
-SCORES = ("bellman", "fqe", "fqe gamma=0.01", "fqe eval-map", "robust_fqe")
+SCORES = ("bellman", "fqe", "fqe gamma=0.01", "fqe eval-map", "robust_fqe", "model")
 # derived from the folds' scores: the eval-map FQE minus one standard deviation over folds
 DERIVED = ("fqe eval-map LCB",)
 CALIBRATION_GAMMAS = (0.01, 0.1, 1.0)
@@ -82,7 +82,7 @@ def score_arguments(task) -> dict:
     return {"bellman": {"kind": "bellman"}, "fqe": {"kind": "fqe"},
             "fqe gamma=0.01": {"kind": "fqe", "gamma": 0.01},
             "fqe eval-map": {"kind": "fqe", "evaluation_map": task.eval_map, "gamma": 0.01},
-            "robust_fqe": {"kind": "robust_fqe"}}
+            "robust_fqe": {"kind": "robust_fqe"}, "model": {"kind": "model"}}
 
 
 @dataclass
@@ -239,7 +239,9 @@ def run_candidate(index: int) -> dict:
             fit_cpu += time.process_time() - c
             held = data[test]
             for name in SCORES:
-                scores[name].append(est.score(held, **arguments[name]))
+                extra = ({"feature_map": task.maps[cand.feature_map]} if name == "model"
+                         else {})
+                scores[name].append(est.score(held, **arguments[name], **extra))
         cv_cpu = time.process_time() - c0
         est = clone(cand.estimator).fit(data)
         policy = est.as_policy(task.maps[cand.feature_map])

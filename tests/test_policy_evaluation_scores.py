@@ -292,10 +292,16 @@ def test_score_form_arguments_are_checked():
         est.score(ds, kind="fqe", pooled="yes")
     with pytest.raises(TypeError, match="pooled must be 'auto'"):
         est.score(ds, kind="fqe", pooled=1)
-    with pytest.raises(ValueError, match="pooled, gamma and evaluation_map are used by"):
+    with pytest.raises(ValueError, match="pooled is used by kind='fqe' and 'robust_fqe' only"):
         est.score(ds, pooled=True)
-    with pytest.raises(ValueError, match="pooled, gamma and evaluation_map are used by"):
+    with pytest.raises(ValueError, match="gamma is used by kind='fqe' and 'robust_fqe' only"):
         est.score(ds, gamma=0.1)
+    with pytest.raises(ValueError, match="gamma is used by .* drop it for kind='model'"):
+        est.score(ds, kind="model", gamma=0.1)
+    with pytest.raises(ValueError, match="n_neighbors is used by kind='model' only"):
+        est.score(ds, kind="fqe", n_neighbors=3)
+    with pytest.raises(ValueError, match="n_rollouts, random_state are used by kind='model'"):
+        Scorer("bellman", n_rollouts=2, random_state=1)
     with pytest.raises(ValueError, match="gamma must be"):
         est.score(ds, kind="fqe", gamma=0.0)
     with pytest.raises(ValueError, match="initial_phi, pooled and gamma are used by"):

@@ -22,6 +22,13 @@ Two scores, both computed from the held-out data alone (no simulator):
     The same evaluation with the estimator's own step rule in place of the regression of
     the next values: the robust (regularized or constrained) value of ``pi`` under the
     estimator's uncertainty model, estimated from the held-out data.
+``"model"``
+    The mean return of ``pi`` simulated in the nearest-neighbour model of the held-out
+    episodes (:class:`~r2pvi.data.neighbour_model.NeighbourModel`) from their initial
+    observations: each step takes the change of state of the nearest held-out transition of
+    ``pi``'s action, and a rollout that leaves the data halts with value 0. ``pi`` follows
+    its own state distribution instead of being regressed on the data's. In the units of
+    the (shifted) rewards, as ``"fqe"``.
 
 See the user guide (``docs/user_guide/model-selection.md``) for what each one is good for
 and how it fails.
@@ -34,11 +41,15 @@ import numpy as np
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
 from ..data import OfflineDataset
+from ..data.neighbour_model import NeighbourModel
 from ._fqe import check_evaluation_dataset, policy_value
 
-__all__ = ["SCORE_KINDS", "bellman_residual", "fqe_value", "Scorer", "score_estimator"]
+__all__ = ["SCORE_KINDS", "bellman_residual", "fqe_value", "model_value", "Scorer",
+           "score_estimator"]
 
-SCORE_KINDS = ("bellman", "fqe", "robust_fqe")
+SCORE_KINDS = ("bellman", "fqe", "robust_fqe", "model")
+# the options of kind="model" and their defaults
+MODEL_OPTIONS = {"n_neighbors": 1, "n_rollouts": 1, "random_state": 0}
 
 
 def _dense(x) -> np.ndarray:
@@ -173,19 +184,85 @@ def fqe_value(est, dataset: OfflineDataset, initial_phi=None, *, robust: bool = 
                             gamma=gamma, evaluation_map=evaluation_map)
 
 
+def model_value(est, dataset: OfflineDataset, feature_map, *, n_neighbors: int = 1,
+                n_rollouts: int = 1, random_state=0) -> float:
+    """Mean simulated return of the estimator's greedy policy in the nearest-neighbour model
+    of ``dataset``.
+
+    Parameters
+    ----------
+    est : fitted LinearEstimator
+    dataset : OfflineDataset
+        Held-out episodes (:meth:`~r2pvi.OfflineDataset.from_episodes` with a map crossed
+        with the actions): the model's transitions, and its initial observations.
+    feature_map : callable or fitted transformer
+        The map the dataset was built with; the policy acts through it on the model's
+        observations (``est.as_policy(feature_map)``).
+    n_neighbors : int >= 1, default 1
+        Distinct nearest observations a transition is drawn from
+        (:class:`~r2pvi.data.neighbour_model.NeighbourModel`).
+    n_rollouts : int >= 1, default 1
+        Rollouts from every initial observation.
+    random_state : int, numpy.random.Generator or None, default 0
+        The draws among neighbours (with ``n_neighbors=1`` and distinct observations the
+        model is deterministic).
+
+    Returns
+    -------
+    float
+        The mean over the rollouts of the rewards over the horizon, plus the known value of
+        the absorbing state a rollout ends in (0 from where it leaves the data and halts),
+        in the units of the (shifted) rewards.
+    """
+    _check(est, dataset)
+    if feature_map is None:
+        raise ValueError("kind='model' needs feature_map: the map the dataset was built with "
+                         "(the policy acts through it on the model's observations, as "
+                         "est.as_policy(feature_map) does in an environment)")
+    policy = est.as_policy(feature_map)
+    model = NeighbourModel(dataset, n_neighbors)
+    with limit_blas():
+        returns = model.returns(policy, n_rollouts=n_rollouts, seed=random_state)
+    return float(returns.mean())
+
+
+def _no_options(kind: str, given: dict, names: tuple, owner: str) -> None:
+    used = [n for n in names if n in given]
+    if used:
+        raise ValueError(f"{', '.join(used)} {'is' if len(used) == 1 else 'are'} used by "
+                         f"{owner} only; drop {'it' if len(used) == 1 else 'them'} for "
+                         f"kind={kind!r}")
+
+
+def _model_options(kind: str, n_neighbors, n_rollouts, random_state) -> dict:
+    """The options of kind="model" that differ from their defaults (refused for others)."""
+    given = {k: v for k, v in (("n_neighbors", n_neighbors), ("n_rollouts", n_rollouts),
+                               ("random_state", random_state))
+             if not (type(v) is int and v == MODEL_OPTIONS[k])}
+    if kind != "model":
+        _no_options(kind, given, tuple(MODEL_OPTIONS) + ("feature_map",), "kind='model'")
+    return {**MODEL_OPTIONS, **given}
+
+
 def score_estimator(est, dataset, kind: str = "bellman", *, initial_phi=None,
-                    pooled="auto", gamma=None, evaluation_map=None) -> float:
+                    pooled="auto", gamma=None, evaluation_map=None, feature_map=None,
+                    n_neighbors=1, n_rollouts=1, random_state=0) -> float:
     """The score of ``kind`` (higher is better); see :meth:`LinearEstimator.score`."""
     kind = check_choice(kind, "kind", SCORE_KINDS)
+    options = _model_options(kind, n_neighbors, n_rollouts, random_state)
+    if kind != "model" and feature_map is not None:
+        _no_options(kind, {"feature_map": feature_map}, ("feature_map",), "kind='model'")
+    fqe_given = {k: v for k, v in (("initial_phi", initial_phi), ("gamma", gamma),
+                                   ("evaluation_map", evaluation_map)) if v is not None}
+    if not (isinstance(pooled, str) and pooled == "auto"):
+        fqe_given["pooled"] = pooled
+    if kind in ("bellman", "model"):
+        _no_options(kind, fqe_given, ("initial_phi", "pooled", "gamma", "evaluation_map"),
+                    "kind='fqe' and 'robust_fqe'")
     if kind == "bellman":
-        if initial_phi is not None:
-            raise ValueError("initial_phi is used by kind='fqe' and 'robust_fqe' only; drop "
-                             "it for 'bellman'")
-        if (not (isinstance(pooled, str) and pooled == "auto") or gamma is not None
-                or evaluation_map is not None):
-            raise ValueError("pooled, gamma and evaluation_map are used by kind='fqe' and "
-                             "'robust_fqe' only; drop them for 'bellman'")
         return -bellman_residual(est, dataset)
+    if kind == "model":
+        return model_value(est, dataset, feature_map, **options)
     return fqe_value(est, dataset, initial_phi, robust=kind == "robust_fqe", pooled=pooled,
                      gamma=gamma, evaluation_map=evaluation_map)
 
@@ -194,11 +271,11 @@ class Scorer:
     """A scoring callable ``scorer(est, dataset, y=None) -> float`` for scikit-learn.
 
     Pass it as ``scoring=`` to ``cross_val_score`` or ``GridSearchCV``; it returns
-    ``est.score(dataset, kind, initial_phi=initial_phi, pooled=pooled)``.
+    ``est.score(dataset, kind, ...)`` with the options given here.
 
     Parameters
     ----------
-    kind : {"bellman", "fqe", "robust_fqe"}
+    kind : {"bellman", "fqe", "robust_fqe", "model"}
     initial_phi : callable, optional
         For ``"fqe"`` and ``"robust_fqe"``: ``initial_phi(held_out_dataset) -> (n, A, d)``,
         the features of every action at the fold's initial states; None:
@@ -209,26 +286,41 @@ class Scorer:
         The evaluation's ridge parameter (None: each estimator's own).
     evaluation_map : feature map, optional
         ``"fqe"``: one map to evaluate every candidate with (see :func:`fqe_value`).
+    feature_map, n_neighbors, n_rollouts, random_state
+        ``"model"``: the map the datasets were built with (required) and the
+        nearest-neighbour model's options (see :func:`model_value`).
 
     Examples
     --------
     >>> from r2pvi.algorithms import Scorer
     >>> Scorer("bellman")
     Scorer('bellman')
+    >>> Scorer("model", feature_map=lambda obs, actions: obs, n_rollouts=3)
+    Scorer('model', n_rollouts=3)
     """
 
     def __init__(self, kind: str = "bellman", *, initial_phi=None, pooled="auto", gamma=None,
-                 evaluation_map=None):
+                 evaluation_map=None, feature_map=None, n_neighbors=1, n_rollouts=1,
+                 random_state=0):
         self.kind = check_choice(kind, "kind", SCORE_KINDS)
         if evaluation_map is not None and self.kind != "fqe":
             raise ValueError("evaluation_map is used by kind='fqe' only")
         if initial_phi is not None and not callable(initial_phi):
             raise TypeError("initial_phi of a scorer must be a callable held-out dataset -> "
                             "(n, A, d): each fold has its own initial states")
-        if self.kind == "bellman" and (initial_phi is not None or gamma is not None
-                                       or not (isinstance(pooled, str) and pooled == "auto")):
+        if self.kind in ("bellman", "model") and (
+                initial_phi is not None or gamma is not None
+                or not (isinstance(pooled, str) and pooled == "auto")):
             raise ValueError("initial_phi, pooled and gamma are used by kind='fqe' and "
-                             "'robust_fqe' only; drop them for 'bellman'")
+                             f"'robust_fqe' only; drop them for {self.kind!r}")
+        options = _model_options(self.kind, n_neighbors, n_rollouts, random_state)
+        if self.kind != "model" and feature_map is not None:
+            _no_options(self.kind, {"feature_map": 1}, ("feature_map",), "kind='model'")
+        if self.kind == "model" and feature_map is None:
+            raise ValueError("Scorer('model') needs feature_map: the map the datasets were "
+                             "built with")
+        self.feature_map = feature_map
+        self._model = {k: v for k, v in options.items() if v is not MODEL_OPTIONS[k]}
         if gamma is not None:
             gamma = check_scalar(gamma, "gamma", low=0.0, low_inclusive=False)
         self.initial_phi = initial_phi
@@ -239,6 +331,9 @@ class Scorer:
     def __call__(self, est, dataset, y=None) -> float:
         if self.kind == "bellman":
             return est.score(dataset, kind="bellman")
+        if self.kind == "model":
+            return est.score(dataset, kind="model", feature_map=self.feature_map,
+                             **self._model)
         return est.score(dataset, kind=self.kind, initial_phi=self.initial_phi,
                          pooled=self.pooled, gamma=self.gamma,
                          evaluation_map=self.evaluation_map)
@@ -247,4 +342,5 @@ class Scorer:
         extra = "" if self.gamma is None else f", gamma={self.gamma!r}"
         if self.evaluation_map is not None:
             extra += f", evaluation_map={self.evaluation_map!r}"
+        extra += "".join(f", {k}={v!r}" for k, v in self._model.items())
         return f"Scorer({self.kind!r}{extra})"

@@ -280,7 +280,9 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
 
     # ------------------------------------------------------------------ scoring
     def score(self, dataset: OfflineDataset, y=None, *, kind: str = "bellman",
-              initial_phi=None, pooled="auto", gamma=None, evaluation_map=None) -> float:
+              initial_phi=None, pooled="auto", gamma=None, evaluation_map=None,
+              feature_map=None, n_neighbors: int = 1, n_rollouts: int = 1,
+              random_state=0) -> float:
         """A score of the fitted estimator on held-out trajectories; higher is better.
 
         Parameters
@@ -289,7 +291,7 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             Held-out trajectories (``dataset[test_indices]``), with the fitted H and d.
         y : None
             Ignored (scikit-learn's signature).
-        kind : {"bellman", "fqe", "robust_fqe"}, default "bellman"
+        kind : {"bellman", "fqe", "robust_fqe", "model"}, default "bellman"
             ``"bellman"``: minus the mean squared nominal Bellman residual
             ``(Q_h(s, a) - r - V_{h+1}(s'))^2`` of the fitted ``Q`` over the held-out
             transitions (0 is a perfect fit). ``"fqe"``: fitted-Q evaluation of the greedy
@@ -297,6 +299,9 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             ``"robust_fqe"``: the same with the estimator's own step rule in place of the
             regression of the next values, i.e. the policy's robust value under the
             estimator's uncertainty model (see :mod:`r2pvi.algorithms._fqe`).
+            ``"model"``: the greedy policy's mean return simulated in the nearest-neighbour
+            model of the held-out episodes (see
+            :class:`~r2pvi.data.neighbour_model.NeighbourModel`; rewards' units).
         initial_phi : array_like (n, A, d) or callable, optional
             ``"fqe"``/``"robust_fqe"`` only: features of every action at the initial
             states, or ``initial_phi(dataset) -> (n, A, d)``; None takes
@@ -312,6 +317,12 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
             ``"fqe"`` with pooled steps: regress on this map's features of the held-out
             observations (the policy still acts on this estimator's): one scale for
             estimators fitted with different maps.
+        feature_map : callable or fitted transformer
+            ``"model"`` only, required: the map the dataset was built with.
+        n_neighbors, n_rollouts, random_state : int, int, int or Generator
+            ``"model"`` only: distinct nearest observations a transition is drawn from
+            (default 1), rollouts from every held-out initial observation (default 1), the
+            draws' seed (default 0). See :func:`r2pvi.algorithms._score.model_value`.
 
         Returns
         -------
@@ -336,7 +347,9 @@ class LinearEstimator(KeywordParams, SklearnCompatMixin):
         from ._score import score_estimator
 
         return score_estimator(self, dataset, kind, initial_phi=initial_phi, pooled=pooled,
-                               gamma=gamma, evaluation_map=evaluation_map)
+                               gamma=gamma, evaluation_map=evaluation_map,
+                               feature_map=feature_map, n_neighbors=n_neighbors,
+                               n_rollouts=n_rollouts, random_state=random_state)
 
     # ------------------------------------------------------------------ I/O
     def _params_to_json(self) -> tuple[dict, dict]:
