@@ -10,8 +10,10 @@ fit form (pooled / per step) x feature map is
    ridge ``gamma``: the library's default), ``fqe eval-map`` (the same on one richer
    evaluation map shared by every candidate, ridge 0.01: ``evaluation_map=``, ``gamma=``),
    ``fqe gamma=0.01`` (the candidate's own map, ridge 0.01), ``fqe eval-map LCB`` (the
-   eval-map FQE minus one standard deviation of its five fold values) and ``robust_fqe``
-   (the policy's value under the candidate's own uncertainty model);
+   eval-map FQE minus one standard deviation of its five fold values), ``robust_fqe``
+   (the policy's value under the candidate's own uncertainty model) and ``model`` (the
+   greedy policy simulated in the nearest-neighbour model of the held-out episodes,
+   :class:`r2pvi.data.neighbour_model.NeighbourModel`, default settings);
 2. refitted on all training trajectories and evaluated in the test environments: the
    nominal return, and the mean over the perturbation sweeps (every point of every sweep).
 
@@ -38,12 +40,20 @@ Tasks:
   here: one fit takes 32 s of CPU at ``d = 192`` (499 steps: no fixed point with shifted
   rewards; 38 s before the batched sorted blocks).
 
+- ``mountaincar`` (``--task mountaincar``; not part of ``both``): ``MountainCar-v0``, 200
+  episodes of an epsilon-greedy (0.3) velocity push, horizon 200, rewards shifted; test:
+  nominal and ``force`` x 0.75, 0.9, 1.25 and ``gravity`` x 0.8, 1.1, 1.25, 20 episodes each;
+  maps ``NormalizedRBF(n_centers=6)`` (``d = 108``) and ``n_centers=4`` (``d = 48``);
+  evaluation map ``n_centers=8``. Added after the ``model`` score's design was settled on
+  the quick grids of the other two tasks: a task none of its choices saw.
+
 Candidates run in ``--jobs`` processes (fork), BLAS on one thread each. The whole script
 takes about 15-30 minutes on 2 cores.
 
     python benchmarks/bench_selection.py                     # both tasks
     python benchmarks/bench_selection.py --task acrobot --jobs 2
     python benchmarks/bench_selection.py --quick             # a small smoke run
+    python benchmarks/bench_selection.py --task mountaincar  # the unseen third task
     python benchmarks/bench_selection.py --json rows         # also rows.<task>.json (folds)
     python benchmarks/bench_selection.py --calibration       # only the calibration table
 
@@ -72,6 +82,9 @@ from r2pvi.episodes import episode_observations
 from r2pvi.features import NormalizedRBF, cross_actions
 
 SCORES = ("bellman", "fqe", "fqe gamma=0.01", "fqe eval-map", "robust_fqe", "model")
+# a sensitivity check of the model score's settings (not a default): --scores "model k=5"
+EXTRA_SCORES = ("model k=5",)
+_ACTIVE: tuple = SCORES  # the scores this run computes (--scores)
 # derived from the folds' scores: the eval-map FQE minus one standard deviation over folds
 DERIVED = ("fqe eval-map LCB",)
 CALIBRATION_GAMMAS = (0.01, 0.1, 1.0)
@@ -82,7 +95,8 @@ def score_arguments(task) -> dict:
     return {"bellman": {"kind": "bellman"}, "fqe": {"kind": "fqe"},
             "fqe gamma=0.01": {"kind": "fqe", "gamma": 0.01},
             "fqe eval-map": {"kind": "fqe", "evaluation_map": task.eval_map, "gamma": 0.01},
-            "robust_fqe": {"kind": "robust_fqe"}, "model": {"kind": "model"}}
+            "robust_fqe": {"kind": "robust_fqe"}, "model": {"kind": "model"},
+            "model k=5": {"kind": "model", "n_neighbors": 5, "n_rollouts": 5}}
 
 
 @dataclass
@@ -216,6 +230,65 @@ def acrobot_task(quick: bool) -> Task:
     return Task("acrobot", eps, maps, eval_map, 3, 500, "auto", grid, evaluate, behaviour)
 
 
+# ---------------------------------------------------------------------------- MountainCar
+def velocity_push(h, observations):
+    """Push (action 2) in the direction of the velocity, else pull (action 0)."""
+    obs = np.atleast_2d(observations)
+    return np.where(obs[:, 1] >= 0.0, 2, 0).astype(np.int64)
+
+
+MOUNTAINCAR_SWEEPS = {"force": (0.00075, 0.0009, 0.00125),
+                      "gravity": (0.002, 0.00275, 0.003125)}
+
+
+def mountaincar_task(quick: bool) -> Task:
+    """``MountainCar-v0``: added after the model score was designed on the other two tasks,
+    as a task none of its design choices saw (see the module docstring)."""
+    import gymnasium as gym
+
+    from r2pvi.envs import EpsilonGreedy, collect_episodes
+    from r2pvi.envs.perturbations import make_perturbed
+    from r2pvi.evaluation import evaluate_policy
+
+    behaviour = EpsilonGreedy(velocity_push, 0.3, 3)
+    eps = collect_episodes(gym.make("MountainCar-v0"), behaviour, 100 if quick else 200,
+                           seed=1, n_envs=50)
+    obs = episode_observations(eps)
+    maps = {"rbf6": cross_actions(NormalizedRBF(n_centers=6).fit(obs), 3),
+            "rbf4": cross_actions(NormalizedRBF(n_centers=4).fit(obs), 3)}
+    eval_map = cross_actions(NormalizedRBF(n_centers=8).fit(obs), 3)
+
+    def run(env, policy):
+        return evaluate_policy(env, policy, 20, seed=0, n_envs=20, max_steps=200)[0]
+
+    def evaluate(policy):
+        nominal = run(gym.make("MountainCar-v0"), policy)
+        sweeps = {}
+        for name, values in MOUNTAINCAR_SWEEPS.items():
+            runs = [nominal] + [run(make_perturbed("MountainCar-v0", **{name: v}), policy)
+                                for v in values]
+            sweeps[name] = float(np.mean(runs))
+        return float(nominal), float(np.mean(list(sweeps.values()))), sweeps
+
+    def tv(lam, beta=0.01, form="auto"):
+        return R2PVI("tv", lam, beta=beta, r_max=1.0, time_homogeneous=form)
+
+    grid = [Candidate(f"TV lam={lam} beta=0.01", tv(lam), "rbf6")
+            for lam in ((0.3, 5.0) if quick else (0.3, 1.0, 5.0, 20.0))]
+    if not quick:
+        grid += [
+            Candidate("TV lam=5.0 beta=0.01 per-step", tv(5.0, 0.01, False), "rbf6"),
+            Candidate("KL lam=1.0 beta=0.01", R2PVI("kl", 1.0, beta=0.01, r_max=1.0), "rbf6"),
+            Candidate("PEVI beta=0.01", PEVI(beta=0.01, r_max=1.0), "rbf6"),
+            Candidate("TV lam=5.0 beta=0.01", tv(5.0), "rbf4"),
+            Candidate("DRPVI rho=0.1 beta=0.01", DRPVI(rho=0.1, beta=0.01, r_max=1.0),
+                      "rbf4"),
+        ]
+    grid.append(Candidate("PEVI beta=0.01", PEVI(beta=0.01, r_max=1.0), "rbf4"))
+    return Task("mountaincar", eps, maps, eval_map, 3, 200, "auto", grid, evaluate,
+                behaviour)
+
+
 # ---------------------------------------------------------------------------- running
 _TASK: Task | None = None  # the task of the forked workers (inherited, never sent)
 
@@ -228,7 +301,7 @@ def run_candidate(index: int) -> dict:
     cv = KFold(5, shuffle=True, random_state=0)
     warnings.simplefilter("ignore")  # per-step fits warn that they starve (by design here)
     out = {"label": cand.label, "map": cand.feature_map, "d": data.n_features}
-    scores = {name: [] for name in SCORES}
+    scores = {name: [] for name in _ACTIVE}
     arguments = score_arguments(task)
     c0 = time.process_time()
     with threadpool_limits(1, "blas"):
@@ -238,17 +311,18 @@ def run_candidate(index: int) -> dict:
             est = clone(cand.estimator).fit(data[train])
             fit_cpu += time.process_time() - c
             held = data[test]
-            for name in SCORES:
-                extra = ({"feature_map": task.maps[cand.feature_map]} if name == "model"
-                         else {})
+            for name in _ACTIVE:
+                extra = ({"feature_map": task.maps[cand.feature_map]}
+                         if name.startswith("model") else {})
                 scores[name].append(est.score(held, **arguments[name], **extra))
         cv_cpu = time.process_time() - c0
         est = clone(cand.estimator).fit(data)
         policy = est.as_policy(task.maps[cand.feature_map])
         nominal, sweep, sweeps = task.evaluate(policy)
     cv_mean = {k: float(np.mean(v)) for k, v in scores.items()}
-    spread = float(np.std(scores["fqe eval-map"], ddof=1))
-    cv_mean["fqe eval-map LCB"] = cv_mean["fqe eval-map"] - spread
+    if "fqe eval-map" in scores:
+        spread = float(np.std(scores["fqe eval-map"], ddof=1))
+        cv_mean["fqe eval-map LCB"] = cv_mean["fqe eval-map"] - spread
     out.update(cv=cv_mean, folds={k: [float(x) for x in v] for k, v in scores.items()},
                nominal=nominal, sweep=sweep, sweeps=sweeps,
                fit_cpu=fit_cpu / 5, cv_cpu=cv_cpu, cpu=time.process_time() - c0)
@@ -322,13 +396,14 @@ def report(task: Task, rows: list[dict], behaviour: tuple) -> str:
              f"{len(rows)} candidates\n"]
     lines.append(f"behaviour policy: nominal {behaviour[0]:.1f}, sweep mean "
                  f"{behaviour[1]:.1f}\n")
-    head = ["candidate", "map (d)", *SCORES, *DERIVED, "nominal", "sweep mean", "fit CPU s",
+    names = [k for k in (*SCORES, *EXTRA_SCORES, *DERIVED) if k in rows[0]["cv"]]
+    head = ["candidate", "map (d)", *names, "nominal", "sweep mean", "fit CPU s",
             "CV CPU s"]
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---|" * len(head))
     for r in rows:
         cells = [r["label"], f"{r['map']} ({r['d']})",
-                 *(f"{r['cv'][k]:.4g}" for k in SCORES + DERIVED),
+                 *(f"{r['cv'][k]:.4g}" for k in names),
                  f"{r['nominal']:.1f}", f"{r['sweep']:.1f}", f"{r['fit_cpu']:.2f}",
                  f"{r['cv_cpu']:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
@@ -341,7 +416,7 @@ def report(task: Task, rows: list[dict], behaviour: tuple) -> str:
             "gap to best sweep mean", "targets (2 % / 5 %)"]
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---|" * len(head))
-    for name in SCORES + DERIVED:
+    for name in names:
         pick = max(rows, key=lambda r: r["cv"][name])
         g1, g2 = gap(pick["nominal"], oracle["nominal"]), gap(pick["sweep"], best_sweep)
         met = ("met" if g1 <= 2 and g2 <= 5 else "missed") + f" ({g1 <= 2}, {g2 <= 5})"
@@ -352,18 +427,26 @@ def report(task: Task, rows: list[dict], behaviour: tuple) -> str:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--task", choices=["cartpole", "acrobot", "both"], default="both")
+    parser.add_argument("--task", choices=["cartpole", "acrobot", "mountaincar", "both"],
+                        default="both", help="both: CartPole and Acrobot")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--quick", action="store_true", help="small data and grid (smoke)")
     parser.add_argument("--calibration", action="store_true",
                         help="only the behaviour-policy calibration of the evaluation settings")
     parser.add_argument("--json", help="write the candidates' rows (fold scores) here")
+    parser.add_argument("--scores", nargs="+", choices=SCORES + EXTRA_SCORES,
+                        help="compute only these scores (default: every score but the "
+                             "sensitivity check 'model k=5')")
     args = parser.parse_args()
+    global _ACTIVE
+    if args.scores:
+        _ACTIVE = tuple(args.scores)
     t0 = time.perf_counter()
     names = ["cartpole", "acrobot"] if args.task == "both" else [args.task]
     for name in names:
         t = time.perf_counter()
-        task = (cartpole_task if name == "cartpole" else acrobot_task)(args.quick)
+        task = {"cartpole": cartpole_task, "acrobot": acrobot_task,
+                "mountaincar": mountaincar_task}[name](args.quick)
         if args.calibration:
             print(calibration_report(task, run_calibration(task, args.jobs)), flush=True)
             print(f"\n{name}: {time.perf_counter() - t:.0f} s wall", flush=True)

@@ -14,7 +14,7 @@ from sklearn.model_selection import GridSearchCV, KFold
 
 from r2pvi import PEVI, R2PVI, OfflineDataset
 from r2pvi.algorithms import Scorer
-from r2pvi.data.neighbour_model import NeighbourModel
+from r2pvi.data import NeighbourModel
 from r2pvi.features import StateAggregation, cross_actions
 
 S, A, H = 4, 2, 5  # states 0..S-1, state S absorbing (terminal)

@@ -40,8 +40,7 @@ import numpy as np
 
 from .._threads import limit_blas
 from .._validation import as_float_array, check_choice, check_scalar
-from ..data import OfflineDataset
-from ..data.neighbour_model import NeighbourModel
+from ..data import NeighbourModel, OfflineDataset
 from ._fqe import check_evaluation_dataset, policy_value
 
 __all__ = ["SCORE_KINDS", "bellman_residual", "fqe_value", "model_value", "Scorer",

@@ -72,7 +72,7 @@ class NeighbourModel:
     --------
     >>> import numpy as np
     >>> from r2pvi import OfflineDataset
-    >>> from r2pvi.data.neighbour_model import NeighbourModel
+    >>> from r2pvi.data import NeighbourModel
     >>> from r2pvi.features import StateAggregation, cross_actions
     >>> fmap = cross_actions(StateAggregation(n_bins=2).fit([[0.0], [1.0]]), 2)
     >>> ep = {"observations": [[0.0], [1.0], [1.0]], "actions": [1, 0],
