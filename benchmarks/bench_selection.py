@@ -56,6 +56,7 @@ takes about 15-30 minutes on 2 cores.
     python benchmarks/bench_selection.py --task mountaincar  # the unseen third task
     python benchmarks/bench_selection.py --json rows         # also rows.<task>.json (folds)
     python benchmarks/bench_selection.py --calibration       # only the calibration table
+    python benchmarks/bench_selection.py --model-check       # the model on the behaviour
 
 ``--calibration`` measures, for every evaluation setting (each map's own features and the
 evaluation map, ridge ``gamma`` in 0.01, 0.1, 1), how well fitted-Q evaluation of the
@@ -355,6 +356,29 @@ def calibration_report(task: Task, rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def model_check(task: Task) -> str:
+    """The nearest-neighbour model of each held-out fold against the data's own policy: the
+    behaviour's simulated return (5 rollouts per initial observation) next to the fold's
+    observed returns, 5-fold trajectory CV on the training episodes."""
+    from r2pvi.algorithms._calibration import observed_returns
+    from r2pvi.data import NeighbourModel
+
+    data = task.dataset(next(iter(task.maps)))
+    rng = np.random.default_rng(0)
+
+    def behaviour(h, obs):
+        return np.asarray(task.behaviour.sample(np.full(len(obs), h), obs, [rng] * len(obs)))
+
+    sim, seen = [], []
+    for _, test in KFold(5, shuffle=True, random_state=0).split(data):
+        held = data[test]
+        sim.append(float(NeighbourModel(held).returns(behaviour, n_rollouts=5).mean()))
+        seen.append(float(observed_returns(held).mean()))
+    return (f"\n{task.name}: the behaviour's return in the held-out folds' models "
+            f"{np.round(sim, 1).tolist()} (mean {np.mean(sim):.1f}); observed "
+            f"{np.round(seen, 1).tolist()} (mean {np.mean(seen):.1f}), in the dataset's reward units")
+
+
 def gap(value: float, best: float) -> float:
     """Shortfall of ``value`` below ``best`` in % of ``|best|`` (0 when at or above)."""
     return max(0.0, best - value) / abs(best) * 100.0
@@ -403,6 +427,9 @@ def main():
     parser.add_argument("--calibration", action="store_true",
                         help="only the behaviour-policy calibration of the evaluation settings")
     parser.add_argument("--json", help="write the candidates' rows (fold scores) here")
+    parser.add_argument("--model-check", action="store_true",
+                        help="only the model's simulated return of the behaviour policy "
+                             "against the held-out observed returns")
     parser.add_argument("--scores", nargs="+", choices=SCORES + EXTRA_SCORES,
                         help="compute only these scores (default: every score but the "
                              "sensitivity check 'model k=5')")
@@ -416,6 +443,9 @@ def main():
         t = time.perf_counter()
         task = {"cartpole": cartpole_task, "acrobot": acrobot_task,
                 "mountaincar": mountaincar_task}[name](args.quick)
+        if args.model_check:
+            print(model_check(task), flush=True)
+            continue
         if args.calibration:
             print(calibration_report(task, run_calibration(task, args.jobs)), flush=True)
             print(f"\n{name}: {time.perf_counter() - t:.0f} s wall", flush=True)
