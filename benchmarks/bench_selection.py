@@ -376,7 +376,8 @@ def model_check(task: Task) -> str:
         seen.append(float(observed_returns(held).mean()))
     return (f"\n{task.name}: the behaviour's return in the held-out folds' models "
             f"{np.round(sim, 1).tolist()} (mean {np.mean(sim):.1f}); observed "
-            f"{np.round(seen, 1).tolist()} (mean {np.mean(seen):.1f}), in the dataset's reward units")
+            f"{np.round(seen, 1).tolist()} (mean {np.mean(seen):.1f}), in the dataset's "
+            "reward units")
 
 
 def gap(value: float, best: float) -> float:
