@@ -44,6 +44,7 @@ from r2pvi.envs import EpsilonGreedy, collect_episodes, evaluate_cartpole_grid
 from r2pvi.envs.experts import CartPoleLQR
 from r2pvi.envs.noisy_cartpole_gym import NoisyCartPoleEnv
 from r2pvi.episodes import episode_observations
+from r2pvi.experiments.plotting import cv_score_panels, returns_panel
 from r2pvi.features import NormalizedRBF, cross_actions
 
 warnings.simplefilter("ignore")  # sklearn's and the fits' notes are not the point here
@@ -76,23 +77,12 @@ truth = np.array(truth)
 # ----------------------------------------------------------------------------------
 res = search.cv_results_
 fig, axes = plt.subplots(1, 4, figsize=(15, 3.6), constrained_layout=True)
-for ax, name, title in ((axes[0], "model", "neighbour-model return (rewards)"),
-                        (axes[1], "fqe", "FQE on one evaluation map (rewards)"),
-                        (axes[2], "bellman", "minus the Bellman residual")):
-    mean, std = res[f"mean_test_{name}"], res[f"std_test_{name}"]
-    ax.errorbar(lams, mean, yerr=std, marker="o", capsize=3)
-    ax.plot(lams[int(np.argmax(mean))], mean.max(), "r*", markersize=14, label="chosen")
-    ax.set_title(title, fontsize=10)
-    ax.set_ylabel("3-fold CV score (mean +- sd)")
-axes[3].plot(lams, truth[:, 0], "o-", label="nominal return")
-axes[3].plot(lams, truth[:, 1], "s--", label="mean over the sweeps")
-axes[3].axvline(search.best_params_["lam"], color="r", linestyle=":",
-                label="chosen by the model score")
-axes[3].set_title("true returns (test environments)", fontsize=10)
-for ax in axes:
-    ax.set_xscale("log")
-    ax.set_xlabel("lam")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+cv_score_panels(axes[:3], lams, res, {"model": "neighbour-model return (rewards)",
+                                      "fqe": "FQE on one evaluation map (rewards)",
+                                      "bellman": "minus the Bellman residual"})
+returns_panel(axes[3], lams, {"nominal return": truth[:, 0],
+                              "mean over the sweeps": truth[:, 1]},
+              search.best_params_["lam"], "true returns (test environments)",
+              chosen_label="chosen by the model score")
 fig.suptitle("R2PVI-TV on 300 noisy CartPole episodes: lam by trajectory cross-validation")
 plt.show()

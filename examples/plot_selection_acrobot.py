@@ -32,6 +32,7 @@ from r2pvi.algorithms import Scorer
 from r2pvi.envs import EpsilonGreedy, collect_episodes
 from r2pvi.episodes import episode_observations
 from r2pvi.evaluation import evaluate_policy
+from r2pvi.experiments.plotting import cv_score_panels, returns_panel
 from r2pvi.features import NormalizedRBF, cross_actions
 
 
@@ -72,23 +73,11 @@ print("true returns:", dict(zip(lams, truth.round(1), strict=True)))
 # Scores (left, from the data alone, shifted reward units) and returns (right)
 # ----------------------------------------------------------------------------
 fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), constrained_layout=True)
-for ax, name, title in ((axes[0], "model", "neighbour-model return"),
-                        (axes[1], "fqe", "FQE on one evaluation map")):
-    mean, std = res[f"mean_test_{name}"], res[f"std_test_{name}"]
-    ax.errorbar(lams, mean, yerr=std, marker="o", capsize=3)
-    ax.plot(lams[int(np.argmax(mean))], mean.max(), "r*", markersize=14, label="chosen")
-    ax.set_title(title, fontsize=10)
-    ax.set_ylabel("3-fold CV score (mean +- sd)")
-axes[2].plot(lams, truth, "o-", label="return in Acrobot-v1")
+cv_score_panels(axes[:2], lams, res, {"model": "neighbour-model return",
+                                      "fqe": "FQE on one evaluation map"})
 axes[2].axhline(-500, color="gray", linewidth=1, label="never reaches the goal")
-axes[2].axvline(search.best_params_["lam"], color="r", linestyle=":",
-                label="chosen by the model score")
-axes[2].set_title("true returns (20 episodes)", fontsize=10)
-for ax in axes:
-    ax.set_xscale("log")
-    ax.set_xlabel("lam")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+returns_panel(axes[2], lams, {"return in Acrobot-v1": truth}, search.best_params_["lam"],
+              "true returns (20 episodes)", chosen_label="chosen by the model score")
 fig.suptitle("R2PVI-TV on 100 Acrobot episodes: lam by trajectory cross-validation")
 plt.show()
 

@@ -5,7 +5,13 @@ import io
 import numpy as np
 import pytest
 
-from r2pvi.experiments.plotting import line_panels, merge_identical_exact, series_style
+from r2pvi.experiments.plotting import (
+    cv_score_panels,
+    line_panels,
+    merge_identical_exact,
+    returns_panel,
+    series_style,
+)
 from r2pvi.experiments.progress import SweepProgress
 from r2pvi.experiments.results import read_results, summarize, write_results
 from r2pvi.experiments.runner import Task, run_tasks
@@ -110,3 +116,23 @@ def test_timing_rows_are_one_per_fit_and_the_table_has_no_fake_spread(tmp_path, 
     text = capsys.readouterr().out
     assert "one timed fit" in text and "±" not in text.split("one timed fit")[1]
     assert np.all([r["value"] > 0 for r in out["rows"]])
+
+
+def test_cv_score_panels_mark_each_scores_best_value():
+    import matplotlib.pyplot as plt
+
+    results = {"mean_test_a": [1.0, 3.0, 2.0], "std_test_a": [0.1, 0.2, 0.3],
+               "mean_test_b": [5.0, 1.0, 0.0], "std_test_b": [0.0, 0.0, 0.0]}
+    fig, axes = plt.subplots(1, 2)
+    best = cv_score_panels(axes, [0.1, 1.0, 10.0], results, {"a": "A", "b": "B"})
+    assert best == [1, 0]
+    star = [line for line in axes[0].lines if line.get_marker() == "*"][0]
+    assert star.get_xdata()[0] == 1.0 and star.get_ydata()[0] == 3.0
+    assert axes[1].get_title() == "B" and axes[0].get_xscale() == "log"
+    with pytest.raises(ValueError):
+        cv_score_panels(axes, [0.1, 1.0, 10.0], results, {"a": "A"})  # fewer scores than axes
+    returns_panel(axes[1], [0.1, 1.0, 10.0], {"nominal": [1, 2, 3], "sweeps": [0, 1, 2]}, 1.0,
+                  "truth")
+    assert [line.get_label() for line in axes[1].lines][-3:] == ["nominal", "sweeps",
+                                                                  "chosen"]
+    plt.close(fig)

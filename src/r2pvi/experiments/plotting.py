@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["line_panels", "save_figure", "series_style", "merge_identical_exact",
-           "exact_groups"]
+           "exact_groups", "cv_score_panels", "returns_panel"]
 
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "*")
 _LINESTYLES = ("-", (0, (5, 1.5)), "-.", (0, (1, 1)), (0, (3, 1, 1, 1, 1, 1)))
@@ -199,6 +199,68 @@ def line_panels(panels, *, xlabel, ylabel, title=None, xscale="linear", logy=Fal
         fig.legend([handles[k] for k in order], order, loc=loc, ncols=ncol, fontsize=8,
                    title=spread, title_fontsize=8, frameon=False)
     return fig
+
+
+def cv_score_panels(axes, values, cv_results: dict, scores: dict, *, xlabel: str = "lam",
+                    xscale: str = "log") -> list[int]:
+    """Draw the scores of a scikit-learn search over one parameter, one panel each.
+
+    Each panel shows ``cv_results["mean_test_<name>"]`` against ``values`` with bars of
+    ``+-`` the folds' standard deviation (``std_test_<name>``), and a star on the best.
+
+    Parameters
+    ----------
+    axes : sequence of matplotlib Axes
+        One per score.
+    values : sequence of float
+        The parameter's values, in the order of the search's candidates.
+    cv_results : dict
+        ``GridSearchCV(...).cv_results_`` (with one scorer per name in ``scores``).
+    scores : dict
+        Scorer name -> panel title.
+
+    Returns
+    -------
+    list of int
+        The index of the best value of each score.
+    """
+    x = np.asarray(values, dtype=float)
+    best = []
+    for ax, (name, title) in zip(axes, scores.items(), strict=True):
+        best.append(_cv_score_panel(ax, x, cv_results, name, title, xlabel, xscale))
+    return best
+
+
+def _cv_score_panel(ax, x, cv_results, name, title, xlabel, xscale) -> int:
+    mean = np.asarray(cv_results[f"mean_test_{name}"], dtype=float)
+    std = np.asarray(cv_results[f"std_test_{name}"], dtype=float)
+    ax.errorbar(x, mean, yerr=std, marker="o", capsize=3)
+    i = int(np.argmax(mean))
+    ax.plot(x[i], mean[i], "r*", markersize=14, label="chosen")
+    ax.set_title(title, fontsize=10)
+    ax.set_ylabel("CV score (mean +- sd over folds)")
+    _finish(ax, xlabel, xscale)
+    return i
+
+
+def returns_panel(ax, values, series: dict, chosen, title: str, *,
+                  chosen_label: str = "chosen", xlabel: str = "lam", xscale: str = "log"):
+    """Draw true returns against a parameter next to :func:`cv_score_panels`: one line per
+    ``series`` (label -> returns, a marker and line style each) and a dotted line at the
+    ``chosen`` value."""
+    styles = ("o-", "s--", "^-.", "D:")
+    for k, (label, y) in enumerate(series.items()):
+        ax.plot(values, y, styles[k % len(styles)], label=label)
+    ax.axvline(chosen, color="r", linestyle=":", label=chosen_label)
+    ax.set_title(title, fontsize=10)
+    _finish(ax, xlabel, xscale)
+
+
+def _finish(ax, xlabel: str, xscale: str) -> None:
+    ax.set_xscale(xscale)
+    ax.set_xlabel(xlabel)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
 
 
 def save_figure(fig, out_dir, name: str) -> dict[str, Path]:
