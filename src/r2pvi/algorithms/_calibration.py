@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..data import OfflineDataset
+from ..data.episodes import absorbing_values
 from ..data.storage.crossed import CrossedRows
 from ..engine import pooled_steps
 from ..engine.pooled import CrossedRidgeExpectation
@@ -52,7 +53,7 @@ class _SarsaRows:
         psi, next_psi = _state_features(dataset, evaluation_map)
         P = pooled_steps(H)
         self.P = P
-        self.terminal, self.terminal_value = _terminal(dataset, actions)
+        self.terminal, self.terminal_value = absorbing_values(dataset)
         nxt_actions = np.full((H, K), -1, dtype=np.int64)
         nxt_actions[:-1] = actions[1:]
         taken = actions.copy()
@@ -109,21 +110,10 @@ def _value_bound(dataset: OfflineDataset, rows: _SarsaRows) -> float:
     return max(float(dataset.reward_range[1]), rows.offset, 0.0)
 
 
-def _terminal(dataset: OfflineDataset, actions: np.ndarray):
-    """``(absorbs (H, K), value (H, K))``: whether a transition (a row with a taken
-    action) enters an absorbing state, and that state's known value (0 elsewhere). The
-    rows after an episode's end repeat another episode's next state and its known values:
-    they are not transitions."""
-    known = np.swapaxes(dataset.next_values, 0, 1)  # (H, K, A), NaN where learned
-    term = ~np.isnan(known).all(axis=2) & (actions >= 0)
-    value = np.where(term, np.nanmax(np.where(term[..., None], known, -np.inf), axis=2), 0.0)
-    return term, np.nan_to_num(value, neginf=0.0)
-
-
 def observed_returns(dataset: OfflineDataset) -> np.ndarray:
     """Each trajectory's observed return ``(K,)`` in the dataset's (shifted) reward units:
     its rewards plus the known value of the absorbing state it ends in."""
-    _, value = _terminal(dataset, np.asarray(dataset._source.phi.actions))
+    _, value = absorbing_values(dataset)
     return np.asarray(dataset.rewards, dtype=np.float64).sum(axis=1) + value.sum(axis=0)
 
 

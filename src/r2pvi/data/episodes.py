@@ -44,7 +44,8 @@ from .build_crossed import crossed_episodes, episode_extras, padded_steps
 from .build_sparse import sparse_episodes
 from .storage.fields import _float_dtype
 
-__all__ = ["Episode", "from_episodes", "episode_observations", "as_episode_list"]
+__all__ = ["Episode", "from_episodes", "episode_observations", "as_episode_list",
+           "absorbing_values"]
 
 _FIELDS = ("observations", "actions", "rewards", "terminations", "truncations")
 
@@ -370,3 +371,18 @@ def episode_observations(episodes) -> np.ndarray:
     if not eps:
         raise ValueError("episodes is empty")
     return np.concatenate([np.asarray(_field(ep, "observations", k)) for k, ep in enumerate(eps)])
+
+
+def absorbing_values(dataset) -> tuple[np.ndarray, np.ndarray]:
+    """``(enters (H, K), value (H, K))`` of a dataset of episodes: whether step ``h``'s
+    transition of trajectory ``k`` (a row with a taken action) enters an absorbing state,
+    and that state's known value (``(H - h - 1) c`` for rewards shifted by ``c``; 0
+    elsewhere). The rows after an episode's end repeat another episode's next state and its
+    known values: they are not transitions."""
+    actions = np.asarray(dataset._source.phi.actions)  # (H, K), -1 after the end
+    if not dataset.has_known_values:
+        return np.zeros(actions.shape, dtype=bool), np.zeros(actions.shape)
+    known = np.stack([dataset._source.next.known(h) for h in range(dataset.horizon)])
+    enters = ~np.isnan(known).all(axis=2) & (actions >= 0)
+    value = np.max(np.where(np.isnan(known), -np.inf, known), axis=2)
+    return enters, np.where(enters, value, 0.0)

@@ -35,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .._validation import check_scalar
+from .episodes import absorbing_values
 
 __all__ = ["NeighbourModel"]
 
@@ -104,13 +105,11 @@ class NeighbourModel:
         self.actions = actions[h_idx, k_idx]
         self.rewards = np.asarray(dataset.rewards, dtype=np.float64)[k_idx, h_idx]
         self.offset = float(dataset._source.reward_offset or 0.0)
-        known = (np.stack([dataset._source.next.known(h) for h in range(H)])[h_idx, k_idx]
-                 if dataset.has_known_values else np.full((n, A), np.nan))
-        self.terminal = ~np.isnan(known).all(axis=1)
-        value = np.max(np.where(np.isnan(known), -np.inf, known), axis=1)
+        enters, value = absorbing_values(dataset)
+        self.terminal = enters[h_idx, k_idx]
         # an absorbing state's value at step h is base + (H - h - 1) * offset
-        self.terminal_base = np.where(self.terminal, value - (H - h_idx - 1) * self.offset,
-                                      0.0)
+        self.terminal_base = np.where(self.terminal,
+                                      value[h_idx, k_idx] - (H - h_idx - 1) * self.offset, 0.0)
         self.initial_obs = obs[:, 0].reshape(K, -1).astype(np.float64)
         scale = self.states.std(axis=0)
         self.scale_ = np.where(scale > 0, scale, 1.0)
