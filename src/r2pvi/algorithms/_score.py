@@ -225,22 +225,25 @@ def model_value(est, dataset: OfflineDataset, feature_map, *, n_neighbors: int =
     return float(returns.mean())
 
 
-def _no_options(kind: str, given: dict, names: tuple, owner: str) -> None:
-    used = [n for n in names if n in given]
+def _no_options(kind: str, given: dict, owner: str) -> None:
+    """Refuse the keywords ``given`` (used by ``owner`` only) for ``kind``."""
+    used = list(given)
     if used:
         raise ValueError(f"{', '.join(used)} {'is' if len(used) == 1 else 'are'} used by "
                          f"{owner} only; drop {'it' if len(used) == 1 else 'them'} for "
                          f"kind={kind!r}")
 
 
-def _model_options(kind: str, n_neighbors, n_rollouts, random_state) -> dict:
-    """The options of kind="model" that differ from their defaults (refused for others)."""
-    given = {k: v for k, v in (("n_neighbors", n_neighbors), ("n_rollouts", n_rollouts),
-                               ("random_state", random_state))
-             if not (type(v) is int and v == MODEL_OPTIONS[k])}
+def _model_options(kind: str, feature_map, n_neighbors, n_rollouts, random_state) -> dict:
+    """The keywords of kind="model" given with values other than their defaults (refused
+    for the other kinds)."""
+    given = {} if feature_map is None else {"feature_map": feature_map}
+    given.update({k: v for k, v in (("n_neighbors", n_neighbors), ("n_rollouts", n_rollouts),
+                                    ("random_state", random_state))
+                  if not (type(v) is int and v == MODEL_OPTIONS[k])})
     if kind != "model":
-        _no_options(kind, given, tuple(MODEL_OPTIONS) + ("feature_map",), "kind='model'")
-    return {**MODEL_OPTIONS, **given}
+        _no_options(kind, given, "kind='model'")
+    return given
 
 
 def score_estimator(est, dataset, kind: str = "bellman", *, initial_phi=None,
@@ -248,20 +251,17 @@ def score_estimator(est, dataset, kind: str = "bellman", *, initial_phi=None,
                     n_neighbors=1, n_rollouts=1, random_state=0) -> float:
     """The score of ``kind`` (higher is better); see :meth:`LinearEstimator.score`."""
     kind = check_choice(kind, "kind", SCORE_KINDS)
-    options = _model_options(kind, n_neighbors, n_rollouts, random_state)
-    if kind != "model" and feature_map is not None:
-        _no_options(kind, {"feature_map": feature_map}, ("feature_map",), "kind='model'")
-    fqe_given = {k: v for k, v in (("initial_phi", initial_phi), ("gamma", gamma),
-                                   ("evaluation_map", evaluation_map)) if v is not None}
-    if not (isinstance(pooled, str) and pooled == "auto"):
-        fqe_given["pooled"] = pooled
+    options = _model_options(kind, feature_map, n_neighbors, n_rollouts, random_state)
+    auto = isinstance(pooled, str) and pooled == "auto"
+    fqe_options = {"initial_phi": initial_phi, "pooled": None if auto else pooled,
+                   "gamma": gamma, "evaluation_map": evaluation_map}
+    fqe_given = {k: v for k, v in fqe_options.items() if v is not None}
     if kind in ("bellman", "model"):
-        _no_options(kind, fqe_given, ("initial_phi", "pooled", "gamma", "evaluation_map"),
-                    "kind='fqe' and 'robust_fqe'")
+        _no_options(kind, fqe_given, "kind='fqe' and 'robust_fqe'")
     if kind == "bellman":
         return -bellman_residual(est, dataset)
     if kind == "model":
-        return model_value(est, dataset, feature_map, **options)
+        return model_value(est, dataset, **{"feature_map": None, **options})
     return fqe_value(est, dataset, initial_phi, robust=kind == "robust_fqe", pooled=pooled,
                      gamma=gamma, evaluation_map=evaluation_map)
 
@@ -312,14 +312,12 @@ class Scorer:
                 or not (isinstance(pooled, str) and pooled == "auto")):
             raise ValueError("initial_phi, pooled and gamma are used by kind='fqe' and "
                              f"'robust_fqe' only; drop them for {self.kind!r}")
-        options = _model_options(self.kind, n_neighbors, n_rollouts, random_state)
-        if self.kind != "model" and feature_map is not None:
-            _no_options(self.kind, {"feature_map": 1}, ("feature_map",), "kind='model'")
+        self._model = _model_options(self.kind, feature_map, n_neighbors, n_rollouts,
+                                     random_state)
         if self.kind == "model" and feature_map is None:
             raise ValueError("Scorer('model') needs feature_map: the map the datasets were "
                              "built with")
         self.feature_map = feature_map
-        self._model = {k: v for k, v in options.items() if v is not MODEL_OPTIONS[k]}
         if gamma is not None:
             gamma = check_scalar(gamma, "gamma", low=0.0, low_inclusive=False)
         self.initial_phi = initial_phi
@@ -331,8 +329,7 @@ class Scorer:
         if self.kind == "bellman":
             return est.score(dataset, kind="bellman")
         if self.kind == "model":
-            return est.score(dataset, kind="model", feature_map=self.feature_map,
-                             **self._model)
+            return est.score(dataset, kind="model", **self._model)
         return est.score(dataset, kind=self.kind, initial_phi=self.initial_phi,
                          pooled=self.pooled, gamma=self.gamma,
                          evaluation_map=self.evaluation_map)
@@ -341,5 +338,5 @@ class Scorer:
         extra = "" if self.gamma is None else f", gamma={self.gamma!r}"
         if self.evaluation_map is not None:
             extra += f", evaluation_map={self.evaluation_map!r}"
-        extra += "".join(f", {k}={v!r}" for k, v in self._model.items())
+        extra += "".join(f", {k}={v!r}" for k, v in self._model.items() if k != "feature_map")
         return f"Scorer({self.kind!r}{extra})"
